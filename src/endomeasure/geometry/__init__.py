@@ -1,0 +1,1 @@
+"""Geometry kernels: rotations, rays, planes, refraction, distortion (numpy only)."""

@@ -1,0 +1,131 @@
+"""Brown–Conrady lens distortion on normalised image coordinates (OpenCV order).
+
+Normalised coordinates are ``x = X/Z, y = Y/Z`` in the camera frame; distorted
+normalised coordinates map to pixels by ``u = fx xd + cx, v = fy yd + cy``.
+Coefficients are ``(k1, k2, p1, p2, k3)`` as in OpenCV.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["distort", "undistort", "Undistortion", "max_monotonic_radius2"]
+
+UNDISTORT_MAX_ITER = 30
+
+
+def distort(x: np.ndarray, y: np.ndarray, coeffs) -> tuple[np.ndarray, np.ndarray]:
+    """Apply Brown–Conrady distortion.
+
+    Parameters
+    ----------
+    x, y : ndarray, shape (...)
+        Undistorted normalised coordinates.
+    coeffs : sequence of 5 floats
+        ``k1, k2, p1, p2, k3``.
+
+    Returns
+    -------
+    xd, yd : ndarray, shape (...)
+
+    Notes
+    -----
+    ``xd = x (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2)``,
+    ``yd = y (1 + k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y``
+    (Brown 1966; OpenCV's ``projectPoints`` with five coefficients).
+    """
+    k1, k2, p1, p2, k3 = coeffs
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xy2 = 2.0 * x * y
+    xd = x * radial + p1 * xy2 + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + p2 * xy2
+    return xd, yd
+
+
+class Undistortion(NamedTuple):
+    x: np.ndarray  # (...,) undistorted normalised x, NaN where not converged
+    y: np.ndarray
+    converged: np.ndarray  # (...,) bool
+
+
+def undistort(xd: np.ndarray, yd: np.ndarray, coeffs, tol: float) -> Undistortion:
+    """Invert :func:`distort` by Newton's method, reporting convergence per point.
+
+    Parameters
+    ----------
+    xd, yd : ndarray, shape (...)
+        Distorted normalised coordinates.
+    coeffs : sequence of 5 floats
+        ``k1, k2, p1, p2, k3``.
+    tol : float
+        Convergence threshold on the distorted-coordinate residual, in normalised
+        units (a pixel tolerance divided by the focal length).
+
+    Returns
+    -------
+    Undistortion
+        Points whose residual stays above ``tol`` after ``UNDISTORT_MAX_ITER`` Newton
+        steps, or that leave the monotonic part of the radial polynomial, are NaN with
+        ``converged`` False: the inverse is not unique there.
+    """
+    k1, k2, p1, p2, k3 = coeffs
+    xd = np.asarray(xd, dtype=np.float64)
+    yd = np.asarray(yd, dtype=np.float64)
+    x = xd.copy()
+    y = yd.copy()
+    r2_max = max_monotonic_radius2(k1, k2, k3)
+    converged = np.zeros(x.shape, dtype=bool)
+    active = np.isfinite(x) & np.isfinite(y)
+    for _ in range(UNDISTORT_MAX_ITER):
+        if not active.any():
+            break
+        xa, ya = x[active], y[active]
+        ex, ey = distort(xa, ya, coeffs)
+        ex -= xd[active]
+        ey -= yd[active]
+        done = np.maximum(np.abs(ex), np.abs(ey)) < tol
+        idx = np.flatnonzero(active)
+        converged.flat[idx[done]] = True
+        # Jacobian of distort at (xa, ya)
+        r2 = xa * xa + ya * ya
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+        j11 = radial + 2.0 * xa * xa * dradial + 2.0 * p1 * ya + 6.0 * p2 * xa
+        j12 = 2.0 * xa * ya * dradial + 2.0 * p1 * xa + 2.0 * p2 * ya
+        j21 = 2.0 * xa * ya * dradial + 2.0 * p1 * xa + 2.0 * p2 * ya
+        j22 = radial + 2.0 * ya * ya * dradial + 6.0 * p1 * ya + 2.0 * p2 * xa
+        det = j11 * j22 - j12 * j21
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sx = (j22 * ex - j12 * ey) / det
+            sy = (j11 * ey - j21 * ex) / det
+        step = ~done
+        xa = np.where(step, xa - sx, xa)
+        ya = np.where(step, ya - sy, ya)
+        x.flat[idx] = xa
+        y.flat[idx] = ya
+        active.flat[idx[done]] = False
+        lost = ~np.isfinite(xa) | ~np.isfinite(ya)
+        active.flat[idx[lost]] = False
+    converged &= (x * x + y * y) <= r2_max
+    x = np.where(converged, x, np.nan)
+    y = np.where(converged, y, np.nan)
+    return Undistortion(x, y, converged)
+
+
+def max_monotonic_radius2(k1: float, k2: float, k3: float) -> float:
+    """Largest ``r^2`` up to which the radial map ``r (1 + k1 r^2 + k2 r^4 + k3 r^6)`` grows.
+
+    Beyond it the distortion folds back and one distorted radius has two preimages, so
+    projections there are not trustworthy. Returns ``inf`` when the map grows for all r.
+
+    Notes
+    -----
+    ``d/dr [r + k1 r^3 + k2 r^5 + k3 r^7] = 1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3`` with
+    ``s = r^2``; the answer is its smallest positive real root.
+    """
+    roots = np.roots([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]) if any((k1, k2, k3)) else []
+    positive = [r.real for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12 and r.real > 0]
+    return float(min(positive)) if positive else float("inf")

@@ -1,0 +1,103 @@
+"""Rotation vectors (Rodrigues) and rotation matrices, vectorised over leading dimensions."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["rotation_matrix", "rotation_vector", "transform_points"]
+
+_SMALL_ANGLE = 1e-8  # rad; below this the series form is exact to float64 precision
+
+
+def rotation_matrix(rvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (axis times angle).
+
+    Parameters
+    ----------
+    rvec : ndarray, shape (..., 3), rad
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+
+    Notes
+    -----
+    Rodrigues' formula ``R = I + sin(t) K + (1 - cos(t)) K^2`` with ``K`` the cross
+    product matrix of the unit axis; for tiny angles the first-order series
+    ``I + [r]_x`` is used, which is exact to rounding there.
+    """
+    rvec = np.asarray(rvec, dtype=np.float64)
+    theta = np.linalg.norm(rvec, axis=-1)
+    small = theta < _SMALL_ANGLE
+    safe = np.where(small, 1.0, theta)
+    # sin(t)/t and (1-cos(t))/t^2, with their limits 1 and 1/2 at t -> 0
+    a = np.where(small, 1.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5, (1.0 - np.cos(safe)) / safe**2)
+    x, y, z = rvec[..., 0], rvec[..., 1], rvec[..., 2]
+    zero = np.zeros_like(x)
+    K = np.stack(
+        [
+            np.stack([zero, -z, y], axis=-1),
+            np.stack([z, zero, -x], axis=-1),
+            np.stack([-y, x, zero], axis=-1),
+        ],
+        axis=-2,
+    )
+    eye = np.broadcast_to(np.eye(3), K.shape)
+    return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)
+
+
+def rotation_vector(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of a rotation matrix, the inverse of :func:`rotation_matrix`.
+
+    Parameters
+    ----------
+    R : ndarray, shape (..., 3, 3)
+
+    Returns
+    -------
+    ndarray, shape (..., 3), rad, angle in [0, pi]
+    """
+    R = np.asarray(R, dtype=np.float64)
+    trace = np.trace(R, axis1=-2, axis2=-1)
+    cos_t = np.clip((trace - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos_t)
+    axis_sin = np.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+        axis=-1,
+    ) / 2.0  # = sin(t) * axis
+    sin_t = np.sin(theta)
+    near_pi = cos_t < -0.99
+    small = theta < _SMALL_ANGLE
+    scale = np.where(small, 1.0, theta / np.where(sin_t == 0, 1.0, sin_t))
+    rvec = axis_sin * scale[..., None]
+    if np.any(near_pi):
+        # Near pi, sin(t) loses precision; take the axis from the symmetric part
+        # (R + I) / 2 = a a^T (1 - cos) / 2 + cos I ... use its largest column.
+        B = (R[near_pi] + np.swapaxes(R[near_pi], -1, -2)) / 2.0
+        c = cos_t[near_pi][..., None, None]
+        A = (B - c * np.eye(3)) / (1.0 - c)  # = a a^T
+        col = np.argmax(np.diagonal(A, axis1=-2, axis2=-1), axis=-1)
+        axis = np.take_along_axis(A, col[..., None, None].repeat(3, axis=-1), axis=-2)[..., 0, :]
+        axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+        # choose the sign that agrees with the antisymmetric part
+        sign = np.sign(np.sum(axis * axis_sin[near_pi], axis=-1))
+        sign = np.where(sign == 0, 1.0, sign)
+        rvec[near_pi] = axis * (sign * theta[near_pi])[..., None]
+    return rvec
+
+
+def transform_points(R: np.ndarray, t: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply ``p' = R p + t``.
+
+    Parameters
+    ----------
+    R : ndarray, shape (..., 3, 3)
+    t : ndarray, shape (..., 3), mm
+    points : ndarray, shape (..., 3), mm
+
+    Returns
+    -------
+    ndarray, shape (..., 3), mm
+    """
+    return np.einsum("...ij,...j->...i", R, points) + t

@@ -1,0 +1,252 @@
+"""The contract every camera model of the split-sensor probe fulfils.
+
+A model is an immutable object: a flat float64 parameter vector with names
+(``PARAM_NAMES``), read-only named views, and a separate :class:`ModelConfig` of fixed
+values (image size, split column, which parameters calibration holds fixed). It answers
+two vectorised questions per half (SPEC section 4):
+
+- :meth:`CameraModel.rays` — backward: the ray in space each pixel sees, with its own
+  origin (models may be non-central);
+- :meth:`CameraModel.project` — forward: the pixel where each 3D point lands, with a
+  per-point :class:`~endomeasure.conventions.Status`.
+
+Points are in the model's reference frame (mm), pixels in full-image coordinates.
+Solvers only use this interface, so a new model never touches them.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import json
+from typing import Any, ClassVar, NamedTuple
+
+import numpy as np
+
+from endomeasure.conventions import STATUS_DTYPE, Half, Status, in_half
+
+__all__ = ["CameraModel", "ModelConfig", "Projection", "Rays"]
+
+
+class Rays(NamedTuple):
+    origins: np.ndarray  # (..., 3) mm
+    directions: np.ndarray  # (..., 3) unit
+    status: np.ndarray  # (...,) uint8 Status
+
+
+class Projection(NamedTuple):
+    pixels: np.ndarray  # (..., 2) px, NaN where status != OK
+    status: np.ndarray  # (...,) uint8 Status
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Fixed values of a model that are not estimated.
+
+    Attributes
+    ----------
+    image_size : (int, int)
+        ``(width, height)`` of the whole sensor image, px.
+    split : int
+        First column of the right half.
+    fixed : frozenset of str
+        Names of parameters that calibration holds at their current values.
+    """
+
+    image_size: tuple[int, int]
+    split: int
+    fixed: frozenset[str] = frozenset()
+
+    def __post_init__(self):
+        width, height = (int(v) for v in self.image_size)
+        object.__setattr__(self, "image_size", (width, height))
+        object.__setattr__(self, "split", int(self.split))
+        object.__setattr__(self, "fixed", frozenset(self.fixed))
+        if not (width > 0 and height > 0 and 0 < self.split < width):
+            raise ValueError(
+                f"image size {width}x{height} with split column {self.split} is not valid"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "image_size": list(self.image_size),
+            "split": self.split,
+            "fixed": sorted(self.fixed),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "ModelConfig":
+        return cls(tuple(data["image_size"]), int(data["split"]), frozenset(data.get("fixed", ())))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CameraModel(abc.ABC):
+    """Base class of camera models; see the module docstring.
+
+    Subclasses define ``NAME``, ``PARAM_NAMES``, ``GROUPS`` (name -> slice of
+    ``params``), ``DEFAULT_FIXED`` and implement :meth:`_rays` and :meth:`_project`
+    for one half on flat arrays.
+    """
+
+    params: np.ndarray
+    config: ModelConfig
+
+    NAME: ClassVar[str]
+    PARAM_NAMES: ClassVar[tuple[str, ...]]
+    GROUPS: ClassVar[dict[str, slice]] = {}
+    DEFAULT_FIXED: ClassVar[frozenset[str]] = frozenset()
+
+    def __post_init__(self):
+        params = np.array(self.params, dtype=np.float64).reshape(-1)
+        if params.shape != (len(self.PARAM_NAMES),):
+            raise ValueError(
+                f"{self.NAME} model needs {len(self.PARAM_NAMES)} parameters, got {params.size}"
+            )
+        if not np.all(np.isfinite(params)):
+            raise ValueError(f"{self.NAME} model parameters must be finite")
+        unknown = set(self.config.fixed) - set(self.PARAM_NAMES)
+        if unknown:
+            raise ValueError(f"unknown fixed parameter(s) {sorted(unknown)} for {self.NAME}")
+        params.flags.writeable = False
+        object.__setattr__(self, "params", params)
+        self._check()
+
+    def _check(self) -> None:
+        """Subclass hook: validate parameter values (raise ValueError)."""
+
+    # ----- named access -------------------------------------------------------------
+    @classmethod
+    def index(cls, name: str) -> int:
+        """Position of a parameter in ``params``."""
+        try:
+            return cls.PARAM_NAMES.index(name)
+        except ValueError:
+            raise KeyError(f"{cls.NAME} has no parameter {name!r}") from None
+
+    def __getattr__(self, name: str):
+        # only reached when normal lookup fails: named parameters and groups
+        names = type(self).PARAM_NAMES
+        if name in names:
+            return float(self.params[names.index(name)])
+        groups = type(self).GROUPS
+        if name in groups:
+            return self.params[groups[name]]  # read-only view
+        raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
+
+    def named_params(self) -> dict[str, float]:
+        return dict(zip(self.PARAM_NAMES, self.params.tolist()))
+
+    @property
+    def free_mask(self) -> np.ndarray:
+        """Boolean mask of the parameters calibration estimates, shape (P,)."""
+        return np.array([n not in self.config.fixed for n in self.PARAM_NAMES])
+
+    def with_params(self, params: np.ndarray) -> "CameraModel":
+        """A new model of the same kind and configuration with other parameters."""
+        return dataclasses.replace(self, params=np.asarray(params, dtype=np.float64))
+
+    def with_config(self, **changes) -> "CameraModel":
+        return dataclasses.replace(self, config=dataclasses.replace(self.config, **changes))
+
+    # ----- plain-data round trip ----------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """Plain, JSON-ready description: registry name, names, values, configuration."""
+        return {
+            "model": self.NAME,
+            "param_names": list(self.PARAM_NAMES),
+            "params": self.params.tolist(),
+            "config": self.config.to_dict(),
+        }
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "CameraModel":
+        if data.get("model") != cls.NAME:
+            raise ValueError(f"expected a {cls.NAME!r} model, got {data.get('model')!r}")
+        names = tuple(data.get("param_names", cls.PARAM_NAMES))
+        if names != cls.PARAM_NAMES:
+            raise ValueError(f"parameter names of the {cls.NAME} model do not match this version")
+        return cls(np.asarray(data["params"], dtype=np.float64), ModelConfig.from_dict(data["config"]))
+
+    # ----- the two questions ----------------------------------------------------------
+    def rays(self, pixels: np.ndarray, half: Half | str) -> Rays:
+        """Backward: the ray each pixel of a half sees.
+
+        Parameters
+        ----------
+        pixels : ndarray, shape (..., 2), px
+            Full-image pixel coordinates.
+        half : Half or {'left', 'right'}
+
+        Returns
+        -------
+        Rays
+            Origins (mm) and unit directions in the model frame. Pixels outside the
+            half, NaN input or failed inversions get NaN rays and a status.
+        """
+        half = Half.parse(half)
+        pixels = np.asarray(pixels, dtype=np.float64)
+        if pixels.shape[-1:] != (2,):
+            raise ValueError(f"pixels must have shape (..., 2), got {pixels.shape}")
+        shape = pixels.shape[:-1]
+        flat = pixels.reshape(-1, 2)
+        status = np.full(flat.shape[0], Status.OK, dtype=STATUS_DTYPE)
+        finite = np.all(np.isfinite(flat), axis=-1)
+        status[~finite] = Status.INVALID_INPUT
+        inside = in_half(flat, half, self.config.split, self.config.image_size)
+        status[finite & ~inside] = Status.OUTSIDE_HALF
+        origins = np.full((flat.shape[0], 3), np.nan)
+        directions = np.full((flat.shape[0], 3), np.nan)
+        todo = np.flatnonzero(status == Status.OK)
+        if todo.size:
+            o, d, s = self._rays(flat[todo], half)
+            origins[todo], directions[todo], status[todo] = o, d, s
+        bad = status != Status.OK
+        origins[bad] = np.nan
+        directions[bad] = np.nan
+        return Rays(origins.reshape(*shape, 3), directions.reshape(*shape, 3), status.reshape(shape))
+
+    def project(self, points: np.ndarray, half: Half | str) -> Projection:
+        """Forward: the pixel where each 3D point lands in a half.
+
+        Parameters
+        ----------
+        points : ndarray, shape (..., 3), mm
+            Points in the model frame.
+        half : Half or {'left', 'right'}
+
+        Returns
+        -------
+        Projection
+            Pixels (px) and a status per point; every non-OK point is NaN, so a
+            projection is either right or visibly absent.
+        """
+        half = Half.parse(half)
+        points = np.asarray(points, dtype=np.float64)
+        if points.shape[-1:] != (3,):
+            raise ValueError(f"points must have shape (..., 3), got {points.shape}")
+        shape = points.shape[:-1]
+        flat = points.reshape(-1, 3)
+        status = np.full(flat.shape[0], Status.OK, dtype=STATUS_DTYPE)
+        finite = np.all(np.isfinite(flat), axis=-1)
+        status[~finite] = Status.INVALID_INPUT
+        pixels = np.full((flat.shape[0], 2), np.nan)
+        todo = np.flatnonzero(finite)
+        if todo.size:
+            q, s = self._project(flat[todo], half)
+            pixels[todo], status[todo] = q, s
+        ok = status == Status.OK
+        inside = in_half(pixels, half, self.config.split, self.config.image_size)
+        status[ok & ~inside] = Status.OUTSIDE_HALF
+        pixels[status != Status.OK] = np.nan
+        return Projection(pixels.reshape(*shape, 2), status.reshape(shape))
+
+    @abc.abstractmethod
+    def _rays(self, pixels: np.ndarray, half: Half) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rays of finite pixels inside the half, shape (N, 2) -> (N,3), (N,3), (N,)."""
+
+    @abc.abstractmethod
+    def _project(self, points: np.ndarray, half: Half) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels of finite points, shape (N, 3) -> (N, 2), (N,); half check is done here."""

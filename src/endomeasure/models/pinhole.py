@@ -1,0 +1,115 @@
+"""``pinhole``: the paper's Model 1, two virtual pinhole cameras with Brown distortion.
+
+Each half of the sensor is treated as its own camera (``fx fy cx cy k1 k2 p1 p2 k3``,
+OpenCV order, principal point in full-image pixels). The left virtual camera's frame is
+the model frame; the right camera's pose is ``T_right_left`` (rotation vector ``rx ry
+rz``, translation ``tx ty tz`` in mm), the convention of OpenCV's ``stereoCalibrate``
+``R, T``.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from endomeasure.conventions import STATUS_DTYPE, Half, Status
+from endomeasure.geometry.distortion import distort, max_monotonic_radius2, undistort
+from endomeasure.geometry.rotations import rotation_matrix
+from endomeasure.models.base import CameraModel
+
+__all__ = ["PinholeModel", "project_pinhole", "UNDISTORT_TOL_PX"]
+
+_INTRINSICS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+UNDISTORT_TOL_PX = 1e-9  # px; well below the 1e-6 px the spec requires of the inverse
+
+
+def project_pinhole(points: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project camera-frame points through a Brown pinhole camera.
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3), mm
+    intrinsics : ndarray, shape (9,)
+        ``fx fy cx cy k1 k2 p1 p2 k3``.
+
+    Returns
+    -------
+    pixels : ndarray, shape (N, 2), px
+    status : ndarray, shape (N,), uint8
+        ``BEHIND`` for z <= 0, ``OUTSIDE_HALF`` beyond the radius where the radial
+        polynomial folds back (there the formula gives a plausible but wrong pixel).
+
+    Notes
+    -----
+    Equal to ``cv2.projectPoints`` with five distortion coefficients
+    ``(k1, k2, p1, p2, k3)``.
+    """
+    fx, fy, cx, cy, k1, k2, p1, p2, k3 = intrinsics
+    z = points[:, 2]
+    front = z > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = points[:, 0] / z
+        y = points[:, 1] / z
+    xd, yd = distort(x, y, (k1, k2, p1, p2, k3))
+    pixels = np.stack([fx * xd + cx, fy * yd + cy], axis=-1)
+    status = np.full(z.shape, Status.OK, dtype=STATUS_DTYPE)
+    status[(x * x + y * y) > max_monotonic_radius2(k1, k2, k3)] = Status.OUTSIDE_HALF
+    status[~front] = Status.BEHIND
+    return pixels, status
+
+
+class PinholeModel(CameraModel):
+    """Two virtual Brown pinhole cameras and their relative pose (24 parameters)."""
+
+    NAME: ClassVar[str] = "pinhole"
+    PARAM_NAMES: ClassVar[tuple[str, ...]] = (
+        tuple(f"left_{n}" for n in _INTRINSICS)
+        + tuple(f"right_{n}" for n in _INTRINSICS)
+        + ("rx", "ry", "rz", "tx", "ty", "tz")
+    )
+    GROUPS: ClassVar[dict[str, slice]] = {
+        "left": slice(0, 9),
+        "right": slice(9, 18),
+        "rvec_right_left": slice(18, 21),
+        "t_right_left": slice(21, 24),
+    }
+
+    def _check(self) -> None:
+        for half in ("left", "right"):
+            if getattr(self, f"{half}_fx") <= 0 or getattr(self, f"{half}_fy") <= 0:
+                raise ValueError("focal lengths must be positive")
+
+    def intrinsics(self, half: Half) -> np.ndarray:
+        return self.left if Half.parse(half) is Half.LEFT else self.right
+
+    def pose_right_left(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(R, t)`` of ``T_right_left``: ``p_right = R p_left + t``."""
+        return rotation_matrix(self.rvec_right_left), np.array(self.t_right_left)
+
+    def _to_camera(self, points: np.ndarray, half: Half) -> np.ndarray:
+        if half is Half.LEFT:
+            return points
+        R, t = self.pose_right_left()
+        return points @ R.T + t
+
+    def _project(self, points, half):
+        return project_pinhole(self._to_camera(points, half), self.intrinsics(half))
+
+    def _rays(self, pixels, half):
+        fx, fy, cx, cy, k1, k2, p1, p2, k3 = self.intrinsics(half)
+        und = undistort(
+            (pixels[:, 0] - cx) / fx,
+            (pixels[:, 1] - cy) / fy,
+            (k1, k2, p1, p2, k3),
+            UNDISTORT_TOL_PX / max(fx, fy),
+        )
+        d = np.stack([und.x, und.y, np.ones_like(und.x)], axis=-1)
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        status = np.where(und.converged, Status.OK, Status.NOT_CONVERGED).astype(STATUS_DTYPE)
+        origins = np.zeros_like(d)
+        if half is Half.RIGHT:
+            R, t = self.pose_right_left()
+            origins[:] = -R.T @ t  # right camera centre in the left frame
+            d = d @ R  # R^T d for each row
+        return origins, d, status
