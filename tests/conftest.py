@@ -93,3 +93,10 @@ def pinhole_model():
 def any_model(request):
     """Each registered model in turn (the contract tests run on all of them)."""
     return {"pinhole": make_pinhole_model, "raytrace": make_raytrace_model}[request.param]()
+
+
+@pytest.fixture
+def model_factory():
+    """The design factories themselves, for tests that perturb a design:
+    ``model_factory['raytrace'](k3=0.01)``."""
+    return {"pinhole": make_pinhole_model, "raytrace": make_raytrace_model}
