@@ -116,7 +116,7 @@ _NAME_RE = re.compile(r"^[^/\x00]+$")
 _RESERVED_ATTRS = frozenset({"type", "version", "json_attrs"})
 _UNITS_PREFIX = "units:"
 _IMAGE_COMPRESSION_LEVEL = 4
-"""gzip level for images: close to the best ratio on camera images at a fraction of level 9's time."""
+"""gzip level for images: near the best ratio on camera images at a fraction of level 9's time."""
 
 
 # --------------------------------------------------------------------------- records
