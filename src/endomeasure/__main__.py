@@ -1,0 +1,5 @@
+"""``python -m endomeasure``: the same as the ``endomeasure`` command."""
+
+from endomeasure.cli import main
+
+main()

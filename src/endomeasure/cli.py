@@ -1,0 +1,253 @@
+"""The ``endomeasure`` command line: the only module that imports typer and rich.
+
+Adding a command
+----------------
+Append a function decorated with ``@command()``. Its body imports its pipeline function
+lazily (so ``endomeasure --help`` loads no numpy, cv2, scipy, h5py or matplotlib), calls
+it, and renders the returned report: rich tables and progress on stderr, or with
+``--json`` exactly one JSON document on stdout (use :func:`_print_json`). No maths here.
+The ``@command()`` wrapper is the error boundary: an
+:class:`~endomeasure.errors.EndomeasureError` becomes one line ``error: ...`` on stderr
+and its exit code (0 success, 1 ran but failed its goal, 2 bad usage or bad input); any
+other exception is reported as a bug in one line; ``--debug`` adds the traceback.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import json
+import sys
+import traceback
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any
+
+import typer
+
+from endomeasure import __version__
+from endomeasure.errors import EndomeasureError
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+app = typer.Typer(
+    name="endomeasure",
+    help=(
+        "3D measurement with prism-based stereo video endoscopes.\n\n"
+        "Exit codes: 0 success, 1 ran but failed its goal, 2 bad usage or bad input."
+    ),
+    context_settings={"help_option_names": ["-h", "--help"]},
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_show_locals=False,
+)
+
+EXIT_BUG = 2
+"""An unexpected exception is a bug; the job could not be done, as with bad input."""
+EXIT_INTERRUPTED = 130
+
+
+class _State:
+    debug = False
+
+
+_STATE = _State()
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        sys.stdout.write(f"endomeasure {__version__}\n")
+        raise typer.Exit()
+
+
+@app.callback()
+def _global_options(
+    debug: Annotated[
+        bool, typer.Option("--debug", help="Show the Python traceback of an error.")
+    ] = False,
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_version_callback, is_eager=True, help="Show the version."
+        ),
+    ] = False,
+) -> None:
+    """3D measurement with prism-based stereo video endoscopes."""
+    _STATE.debug = debug
+
+
+def _one_line(text: str, limit: int = 300) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _fail(message: str, code: int, exc: BaseException) -> None:
+    if _STATE.debug:
+        traceback.print_exception(exc, file=sys.stderr)
+    sys.stderr.write(f"error: {_one_line(message)}\n")
+    sys.stderr.flush()
+    raise typer.Exit(code)
+
+
+@contextlib.contextmanager
+def _error_boundary():
+    """Turn exceptions into one line on stderr and an exit code (traceback with --debug)."""
+    try:
+        yield
+    except typer.Exit:
+        raise
+    except EndomeasureError as exc:
+        _fail(exc.one_line(), exc.exit_code, exc)
+    except KeyboardInterrupt as exc:
+        _fail("interrupted; session files are left as they were", EXIT_INTERRUPTED, exc)
+    except Exception as exc:
+        _fail(
+            f"internal error ({type(exc).__name__}: {exc}); this is a bug in endomeasure, "
+            "please report it; rerun as `endomeasure --debug ...` to see the traceback",
+            EXIT_BUG,
+            exc,
+        )
+
+
+def command(name: str | None = None, **kwargs: Any):
+    """Register a command on the app, wrapped in the error boundary."""
+
+    def decorate(function):
+        @functools.wraps(function)
+        def wrapper(*args, **kw):
+            with _error_boundary():
+                return function(*args, **kw)
+
+        app.command(name, **kwargs)(wrapper)
+        return function
+
+    return decorate
+
+
+def _stderr_console() -> Console:
+    from rich.console import Console
+
+    return Console(stderr=True)
+
+
+def _print_json(document: Any) -> None:
+    """Write exactly one JSON document to stdout."""
+    sys.stdout.write(json.dumps(document, indent=2, allow_nan=True) + "\n")
+    sys.stdout.flush()
+
+
+JsonOption = Annotated[
+    bool, typer.Option("--json", help="Print one JSON document on stdout instead of tables.")
+]
+
+
+def main() -> None:
+    """Console-script entry point."""
+    try:
+        app(prog_name="endomeasure")
+    except SystemExit:
+        raise
+    except BaseException as exc:  # escaped the command boundary, e.g. in an option callback
+        if "--debug" in sys.argv:
+            raise
+        sys.stderr.write(
+            f"error: internal error ({_one_line(type(exc).__name__ + ': ' + str(exc))}); "
+            "this is a bug in endomeasure; rerun as `endomeasure --debug ...` for the traceback\n"
+        )
+        sys.exit(EXIT_BUG)
+
+
+# --------------------------------------------------------------------------- commands
+
+
+@command("info")
+def info(
+    session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],
+    json_output: JsonOption = False,
+) -> None:
+    """Summarise what a session holds: images, boards, detections, models, records."""
+    from endomeasure.pipeline.info import summarise_session
+
+    summary = summarise_session(session)
+    if json_output:
+        _print_json(summary.to_dict())
+        return
+
+    from rich.table import Table
+
+    console = _stderr_console()
+    size = "unknown" if summary.image_size is None else "{} x {} px".format(*summary.image_size)
+    split = "unknown" if summary.split is None else f"column {summary.split}"
+    console.print(f"[bold]{summary.path}[/bold]  (session format {summary.format_version})")
+    console.print(f"image size {size}, split {split}, created by {summary.created_by}")
+    images = ", ".join(f"{n} {name}" for name, n in summary.images.items())
+    console.print(f"images: {images}")
+
+    if summary.boards:
+        table = Table(title="boards", title_justify="left")
+        table.add_column("board")
+        table.add_column("spec")
+        for board in summary.boards:
+            table.add_row(board["name"], board["spec"])
+        console.print(table)
+    if summary.detections:
+        table = Table(title="detections", title_justify="left")
+        for column in ("board", "half", "images", "found", "failed", "corners"):
+            table.add_column(column, justify="left" if column in ("board", "half") else "right")
+        for det in summary.detections:
+            table.add_row(
+                det["board"],
+                det["half"],
+                *(str(det[k]) for k in ("images", "found", "failed", "corners")),
+            )
+        console.print(table)
+    if summary.models:
+        table = Table(title="models", title_justify="left")
+        for column in ("model", "type", "parameters", "RMS"):
+            table.add_column(column, justify="right" if column in ("parameters", "RMS") else "left")
+        for model in summary.models:
+            rms = f"{model['rms']:.4f} {model['rms_units']}" if "rms" in model else "-"
+            table.add_row(model["name"], model["registry_name"], str(model["n_params"]), rms)
+        console.print(table)
+    if summary.records:
+        records = ", ".join(f"{n} {kind}" for kind, n in summary.records.items())
+        console.print(f"records: {records}")
+
+
+@command("add-images")
+def add_images(
+    session: Annotated[
+        Path, typer.Argument(help="Session file (.h5); created if missing.", show_default=False)
+    ],
+    paths: Annotated[
+        list[Path] | None,
+        typer.Argument(help="Image files or directories of images.", show_default=False),
+    ] = None,
+    image_set: Annotated[
+        str, typer.Option("--set", help="Image set: calib, test or scene.")
+    ] = "calib",
+    json_output: JsonOption = False,
+) -> None:
+    """Embed image files in a session (compressed, with their path and SHA-256)."""
+    from endomeasure.pipeline.images import add_images as run
+
+    if json_output:
+        report = run(session, paths or [], image_set)
+        _print_json(report.to_dict())
+        return
+
+    from rich.progress import Progress
+
+    with Progress(console=_stderr_console(), transient=True) as progress:
+        task = progress.add_task("reading images", total=None)
+        report = run(
+            session,
+            paths or [],
+            image_set,
+            on_progress=lambda done, total: progress.update(task, completed=done, total=total),
+        )
+    console = _stderr_console()
+    console.print(
+        f"{report.session}: added {len(report.added)} {report.image_set} image(s)"
+        + (f", {len(report.unchanged)} already present" if report.unchanged else "")
+    )
