@@ -1,0 +1,148 @@
+"""Detection benchmarks: accuracy of candidate detectors, and throughput of `detect`.
+
+Usage::
+
+    python bench/bench_detect.py accuracy [--images N] [--seed S]
+        Render N split images with exactly known corners (analytic renders under random
+        board poses, see endomeasure.features.synthetic), noise-free and noisy, run every
+        chessboard method of endomeasure.features.chessboard and print per method:
+        detection rate, corner RMS error against the truth (px) and id agreement.
+
+The numbers go to docs/accuracy.md ("Detection").
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+from endomeasure.conventions import Half
+from endomeasure.features.boards import parse_board_spec
+from endomeasure.features.chessboard import CHESSBOARD_METHODS, detect_chessboard
+from endomeasure.features.synthetic import (
+    apply_homography,
+    homography_from_pose,
+    render_split_image,
+)
+
+IMAGE_SIZE = (800, 600)
+SPLIT = 400
+FOCAL_PX = 420.0
+# The default noisy render: sigma in grey levels, close to a good CCD at mid exposure.
+NOISE_SIGMA = 2.0
+BOARDS = ("chessboard:9x6:1.0", "chessboard:7x5:2.0", "chessboard:8x6:0.5")
+
+
+def random_scene(rng: np.random.Generator, spec) -> dict:
+    """Two homographies (left, right) of one board pose seen through a biprism-like pair.
+
+    The two views are two pinhole cameras 1.2 mm apart looking at the same board, with
+    principal points at the centres of the two halves.
+    """
+    width, height = IMAGE_SIZE
+    extent = np.array([spec.cols, spec.rows]) * spec.square_mm
+    # Distance so that the board fills 35-75 % of the half width.
+    fill = rng.uniform(0.35, 0.75)
+    distance = FOCAL_PX * extent[0] / (fill * SPLIT)
+    tilt = np.radians(rng.uniform(-30, 30, size=2))
+    roll = np.radians(rng.uniform(-20, 20))
+    rvec = np.array([tilt[0], tilt[1], roll])
+    centre_offset = rng.uniform(-0.08, 0.08, size=2) * distance
+    homographies = {}
+    halves = ((Half.LEFT, -0.6, SPLIT / 2), (Half.RIGHT, 0.6, SPLIT + (width - SPLIT) / 2))
+    for half, baseline_x, centre_u in halves:
+        tvec = np.array([centre_offset[0] - baseline_x, centre_offset[1], distance])
+        h0 = homography_from_pose(FOCAL_PX, (centre_u, height / 2), rvec, tvec)
+        # Shift so the board centre lands near the half's centre (plus a random offset).
+        centre_px = apply_homography(h0, extent / 2)
+        axis_px = np.array([centre_u, height / 2]) + centre_offset * FOCAL_PX / distance
+        shift = np.array(
+            [[1, 0, axis_px[0] - centre_px[0]], [0, 1, axis_px[1] - centre_px[1]], [0, 0, 1.0]]
+        )
+        homographies[half] = shift @ h0
+    return homographies
+
+
+def accuracy(n_images: int, seed: int, methods: tuple[str, ...]) -> dict:
+    rng = np.random.default_rng(seed)
+    scenes = []
+    for index in range(n_images):
+        spec = parse_board_spec(BOARDS[index % len(BOARDS)])
+        homographies = random_scene(rng, spec)
+        clean = render_split_image(spec, homographies, IMAGE_SIZE, SPLIT, blur_sigma_px=0.8)
+        noisy = render_split_image(
+            spec,
+            homographies,
+            IMAGE_SIZE,
+            SPLIT,
+            blur_sigma_px=0.8,
+            noise_sigma=NOISE_SIGMA,
+            rng=rng,
+        )
+        scenes.append((spec, clean, noisy))
+    results = {}
+    for method in methods:
+        for label, pick in (("noise-free", 1), ("noisy", 2)):
+            errors, found, tried, same_ids, seconds = [], 0, 0, 0, 0.0
+            for scene in scenes:
+                spec, render = scene[0], scene[pick]
+                for half in Half:
+                    lo, hi = (0, SPLIT) if half is Half.LEFT else (SPLIT, IMAGE_SIZE[0])
+                    crop = np.ascontiguousarray(render.image[:, lo:hi])
+                    truth = render.true_pixels[half]
+                    if np.isnan(truth).any():
+                        continue
+                    tried += 1
+                    start = time.perf_counter()
+                    result = detect_chessboard(crop, spec, method)
+                    seconds += time.perf_counter() - start
+                    if not result.ok:
+                        continue
+                    found += 1
+                    pixels = result.pixels + [lo, 0]
+                    error = np.linalg.norm(pixels - truth, axis=1)
+                    # An id is right when its pixel is nearer its own true corner than any other.
+                    nearest = np.linalg.norm(pixels[:, None] - truth[None], axis=-1).argmin(axis=1)
+                    same_ids += int((nearest == np.arange(len(truth))).all())
+                    errors.append(error)
+            all_errors = np.concatenate(errors) if errors else np.array([np.nan])
+            results[(method, label)] = {
+                "halves": tried,
+                "found": found,
+                "ids_right": same_ids,
+                "rms_px": float(np.sqrt(np.mean(all_errors**2))),
+                "p95_px": float(np.percentile(all_errors, 95)),
+                "ms_per_half": 1000 * seconds / max(tried, 1),
+            }
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    acc = sub.add_parser("accuracy", help="compare chessboard detectors against exact corners")
+    acc.add_argument("--images", type=int, default=24)
+    acc.add_argument("--seed", type=int, default=1)
+    acc.add_argument("--methods", default=",".join(CHESSBOARD_METHODS))
+    args = parser.parse_args(argv)
+    if args.command == "accuracy":
+        methods = tuple(m for m in args.methods.split(",") if m)
+        results = accuracy(args.images, args.seed, methods)
+        print("| method | render | halves found | ids right | RMS px | 95 % px | ms/half |")
+        print("|---|---|---|---|---|---|---|")
+        for (method, label), r in results.items():
+            print(
+                f"| {method} | {label} | {r['found']}/{r['halves']} | "
+                f"{r['ids_right']}/{r['found']} | {r['rms_px']:.4f} | {r['p95_px']:.4f} | "
+                f"{r['ms_per_half']:.1f} |"
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
