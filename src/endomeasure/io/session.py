@@ -342,7 +342,11 @@ def _attr_to_python(value: Any) -> Any:
 
 
 def _is_plain_attr(value: Any) -> bool:
-    if isinstance(value, (str, bool, int, float, np.generic)):
+    if isinstance(value, str):
+        return "\x00" not in value  # HDF5 strings cannot hold NUL; JSON escapes it
+    if isinstance(value, int) and not isinstance(value, bool):
+        return -(2**63) <= value < 2**63  # larger integers go through JSON
+    if isinstance(value, (bool, float, np.generic)):
         return True
     if isinstance(value, (list, tuple, np.ndarray)):
         arr = np.asarray(value)
