@@ -130,6 +130,22 @@ def _stderr_console() -> Console:
     return Console(stderr=True)
 
 
+@contextlib.contextmanager
+def _progress(console: Console, label: str, enabled: bool = True):
+    """Yield an ``on_progress(done, total)`` callback drawing a bar on a terminal's stderr.
+
+    Off a terminal (pipes, CI logs, tests) it draws nothing, so stderr keeps only messages.
+    """
+    if not (enabled and console.is_terminal):
+        yield None
+        return
+    from rich.progress import Progress
+
+    with Progress(console=console, transient=True) as progress:
+        task = progress.add_task(label, total=None)
+        yield lambda done, total: progress.update(task, completed=done, total=total)
+
+
 def _print_json(document: Any) -> None:
     """Write exactly one JSON document to stdout."""
     sys.stdout.write(json.dumps(document, indent=2, allow_nan=True) + "\n")
@@ -231,22 +247,12 @@ def add_images(
     """Embed image files in a session (compressed, with their path and SHA-256)."""
     from endomeasure.pipeline.images import add_images as run
 
+    console = _stderr_console()
+    with _progress(console, "reading images", enabled=not json_output) as on_progress:
+        report = run(session, paths or [], image_set, on_progress=on_progress)
     if json_output:
-        report = run(session, paths or [], image_set)
         _print_json(report.to_dict())
         return
-
-    from rich.progress import Progress
-
-    with Progress(console=_stderr_console(), transient=True) as progress:
-        task = progress.add_task("reading images", total=None)
-        report = run(
-            session,
-            paths or [],
-            image_set,
-            on_progress=lambda done, total: progress.update(task, completed=done, total=total),
-        )
-    console = _stderr_console()
     console.print(
         f"{report.session}: added {len(report.added)} {report.image_set} image(s)"
         + (f", {len(report.unchanged)} already present" if report.unchanged else "")

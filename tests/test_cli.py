@@ -1,0 +1,225 @@
+"""The command line: help, the error boundary, info and add-images."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from endomeasure import __version__, cli
+from endomeasure.conventions import Half
+from endomeasure.io.session import Detection, ModelRecord, Record, edit_session
+
+runner = CliRunner()
+
+
+def run_module(*args: str) -> subprocess.CompletedProcess:
+    """Run ``python -m endomeasure`` (the console script's code path) in a subprocess."""
+    return subprocess.run(
+        [sys.executable, "-m", "endomeasure", *args], capture_output=True, text=True, timeout=60
+    )
+
+
+@pytest.fixture
+def session(tmp_path, rng):
+    path = tmp_path / "probe.h5"
+    with edit_session(path, create=True) as w:
+        w.set_metadata(image_size=(64, 48), split=32)
+        w.write_board("cb1", "chessboard:9x6:1.0", {"cols": 9, "rows": 6, "square_mm": 1.0})
+        w.write_detections(
+            [
+                Detection("img0", "cb1", Half.LEFT, np.arange(12), rng.uniform(0, 31, (12, 2))),
+                Detection(
+                    "img0", "cb1", Half.RIGHT, np.arange(0), np.zeros((0, 2)), failure="blur"
+                ),
+                Detection("img1", "cb1", Half.LEFT, np.arange(5), rng.uniform(0, 31, (5, 2))),
+            ]
+        )
+        w.write_model(
+            ModelRecord(
+                "pinhole",
+                "pinhole",
+                np.zeros(3),
+                ("fx", "fy", "k1"),
+                attrs={"rms": 0.25},
+                units={"rms": "px"},
+            )
+        )
+        w.write_records([Record("measurement", "m1"), Record("measurement", "m2")])
+    return path
+
+
+def test_help_lists_the_commands_and_h_is_help():
+    long = runner.invoke(cli.app, ["--help"])
+    short = runner.invoke(cli.app, ["-h"])
+    assert long.exit_code == short.exit_code == 0
+    assert long.stdout == short.stdout
+    for name in ("info", "add-images", "--debug", "--version"):
+        assert name in long.stdout
+    assert runner.invoke(cli.app, ["info", "-h"]).exit_code == 0
+
+
+def test_version():
+    result = runner.invoke(cli.app, ["--version"])
+    assert result.exit_code == 0 and result.stdout.strip() == f"endomeasure {__version__}"
+
+
+def test_info_json_is_one_document_with_the_counts(session):
+    result = runner.invoke(cli.app, ["info", str(session), "--json"])
+    assert result.exit_code == 0, result.stderr
+    doc = json.loads(result.stdout)  # fails on anything but exactly one JSON document
+    assert doc["format_version"] == "1.0"
+    assert doc["image_size"] == [64, 48] and doc["split"] == 32
+    assert doc["images"] == {"calib": 0, "test": 0, "scene": 0}
+    assert doc["boards"] == [{"name": "cb1", "spec": "chessboard:9x6:1.0"}]
+    assert doc["detections"] == [
+        {"board": "cb1", "half": "left", "images": 2, "found": 2, "failed": 0, "corners": 17},
+        {"board": "cb1", "half": "right", "images": 1, "found": 0, "failed": 1, "corners": 0},
+    ]
+    assert doc["models"] == [
+        {
+            "name": "pinhole",
+            "registry_name": "pinhole",
+            "n_params": 3,
+            "rms": 0.25,
+            "rms_units": "px",
+        }
+    ]
+    assert doc["records"] == {"measurement": 2}
+
+
+def test_info_human_output_goes_to_stderr(session):
+    result = runner.invoke(cli.app, ["info", str(session)])
+    assert result.exit_code == 0
+    assert result.stdout == ""
+    for text in ("64 x 48 px", "column 32", "chessboard:9x6:1.0", "0.2500 px", "2 measurement"):
+        assert text in result.stderr
+
+
+def write_pngs(directory, names, shape, rng):
+    directory.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        cv2.imwrite(str(directory / f"{name}.png"), rng.integers(0, 256, shape, dtype=np.uint8))
+
+
+def test_add_images_embeds_sets_and_is_idempotent(tmp_path, rng):
+    write_pngs(tmp_path / "calib", ["c0", "c1", "c2"], (24, 32), rng)
+    write_pngs(tmp_path / "test", ["t0"], (24, 32), rng)
+    session = tmp_path / "s.h5"
+    for image_set in ("calib", "test"):
+        result = runner.invoke(
+            cli.app, ["add-images", str(session), str(tmp_path / image_set), "--set", image_set]
+        )
+        assert result.exit_code == 0, result.stderr
+    again = runner.invoke(cli.app, ["add-images", str(session), str(tmp_path / "calib"), "--json"])
+    assert json.loads(again.stdout)["added"] == []
+    assert json.loads(again.stdout)["unchanged"] == ["c0", "c1", "c2"]
+    doc = json.loads(runner.invoke(cli.app, ["info", str(session), "--json"]).stdout)
+    assert doc["images"] == {"calib": 3, "test": 1, "scene": 0}
+    assert doc["image_size"] == [32, 24]
+
+
+def test_add_images_refuses_a_second_image_size_in_one_line(tmp_path, rng):
+    write_pngs(tmp_path / "a", ["x"], (24, 32), rng)
+    write_pngs(tmp_path / "b", ["y"], (20, 32), rng)
+    session = tmp_path / "s.h5"
+    assert runner.invoke(cli.app, ["add-images", str(session), str(tmp_path / "a")]).exit_code == 0
+    result = runner.invoke(cli.app, ["add-images", str(session), str(tmp_path / "b")])
+    assert result.exit_code == 2
+    assert result.stderr.count("\n") == 1
+    assert "32x20 px but the session's images are 32x24 px" in result.stderr
+
+
+def test_two_add_images_commands_at_once_keep_both(tmp_path, rng):
+    write_pngs(tmp_path / "a", [f"a{i}" for i in range(4)], (24, 32), rng)
+    write_pngs(tmp_path / "b", [f"b{i}" for i in range(4)], (24, 32), rng)
+    session = tmp_path / "s.h5"
+    procs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "endomeasure",
+                "add-images",
+                str(session),
+                str(tmp_path / d),
+                "--json",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for d in "ab"
+    ]
+    for proc in procs:
+        out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err
+    doc = json.loads(run_module("info", str(session), "--json").stdout)
+    assert doc["images"]["calib"] == 8
+
+
+def damage(kind: str, path):
+    if kind == "missing":
+        return path.parent / "missing.h5"
+    if kind == "not-hdf5":
+        path.write_bytes(b"GIF89a" + bytes(200))
+    elif kind == "truncated":
+        data = path.read_bytes()
+        path.write_bytes(data[: len(data) // 2])
+    elif kind == "future-version":
+        with h5py.File(path, "r+") as f:
+            f.attrs["format_version"] = "2.0"
+    return path
+
+
+EXPECTED_MESSAGE = {
+    "missing": "does not exist",
+    "not-hdf5": "not HDF5",
+    "truncated": "truncated or damaged",
+    "future-version": "version 2.0, this endomeasure",
+}
+
+
+@pytest.mark.parametrize("kind", list(EXPECTED_MESSAGE))
+def test_bad_session_files_give_one_line_and_exit_2(session, kind):
+    path = damage(kind, session)
+    result = run_module("info", str(path))
+    assert result.returncode == 2
+    assert result.stdout == ""
+    assert result.stderr.startswith("error: ") and result.stderr.count("\n") == 1, result.stderr
+    assert EXPECTED_MESSAGE[kind] in result.stderr and str(path) in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_debug_adds_the_traceback_and_keeps_the_exit_code(session):
+    path = damage("not-hdf5", session)
+    result = run_module("--debug", "info", str(path))
+    assert result.returncode == 2
+    assert "Traceback (most recent call last)" in result.stderr
+    assert result.stderr.rstrip().splitlines()[-1].startswith("error: not a session")
+
+
+def test_an_unexpected_exception_is_one_line_calling_itself_a_bug(session, monkeypatch):
+    import endomeasure.pipeline.info as info
+
+    def broken(path):
+        raise ZeroDivisionError("division by zero\nsecond line")
+
+    monkeypatch.setattr(info, "summarise_session", broken)
+    result = runner.invoke(cli.app, ["info", str(session)])
+    assert result.exit_code == 2
+    assert result.stderr.count("\n") == 1
+    assert "internal error (ZeroDivisionError: division by zero second line)" in result.stderr
+    assert "bug" in result.stderr and "--debug" in result.stderr
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+
+
+def test_usage_errors_exit_2():
+    assert runner.invoke(cli.app, ["info"]).exit_code == 2
+    assert runner.invoke(cli.app, ["no-such-command"]).exit_code == 2
