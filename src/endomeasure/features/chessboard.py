@@ -77,6 +77,7 @@ SUBPIX_EPSILON_PX = 1e-4
 # never reaches the grid lines that do not pass through the corner.
 SUBPIX_WINDOW_FRACTION = 0.5
 SUBPIX_MIN_HALFWINDOW, SUBPIX_MAX_HALFWINDOW = 2, 15
+NOT_FOUND = "no chessboard found"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -188,23 +189,45 @@ def refine_corners(gray: np.ndarray, pixels: np.ndarray, halfwindow: int) -> np.
     return refined.reshape(-1, 2).astype(np.float64)
 
 
+class _LargerBoard(Exception):
+    """The sector-based finder saw a larger grid than the spec (a different board)."""
+
+    def __init__(self, shape: tuple[int, int]):
+        super().__init__(shape)
+        self.shape = shape
+
+
 def _find_raw(gray: np.ndarray, spec: ChessboardSpec, method: str) -> np.ndarray | None:
-    """Run the OpenCV finder of a method; corners in the detector's order, or None."""
+    """Run the OpenCV finder of a method; corners (rows, cols, 2) in its order, or None.
+
+    The sector-based finder runs with ``CALIB_CB_LARGER`` so that it reports the whole
+    grid it sees: otherwise it happily returns an 8x6 part of a 9x6 board, with every id
+    off by one column. A larger grid raises :class:`_LargerBoard`.
+    """
     import cv2
 
     if method.startswith("classic"):
         flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
         found, corners = cv2.findChessboardCorners(gray, spec.pattern_size, flags=flags)
-    else:
-        flags = 0
-        if method.startswith("sb-accuracy"):
-            flags |= cv2.CALIB_CB_ACCURACY
-        if method == "sb-accuracy-exhaustive":
-            flags |= cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_NORMALIZE_IMAGE
-        found, corners = cv2.findChessboardCornersSB(gray, spec.pattern_size, flags=flags)
-    if not found or corners is None or len(corners) != spec.n_corners:
+        if not found or corners is None or len(corners) != spec.n_corners:
+            return None
+        return corners.reshape(spec.rows, spec.cols, 2).astype(np.float64)
+    flags = cv2.CALIB_CB_LARGER
+    if method.startswith("sb-accuracy"):
+        flags |= cv2.CALIB_CB_ACCURACY
+    if method == "sb-accuracy-exhaustive":
+        flags |= cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_NORMALIZE_IMAGE
+    found, corners, meta = cv2.findChessboardCornersSBWithMeta(gray, spec.pattern_size, flags)
+    if not found or corners is None or meta is None:
         return None
-    return corners.reshape(spec.rows, spec.cols, 2).astype(np.float64)
+    # meta's shape is the found grid as (lines, corners per line) in the corners' order.
+    shape = tuple(int(n) for n in meta.shape[:2])
+    if sorted(shape) != sorted(spec.pattern_size) or len(corners) != spec.n_corners:
+        raise _LargerBoard(shape)
+    grid = corners.reshape(shape[0], shape[1], 2).astype(np.float64)
+    if shape != (spec.rows, spec.cols):
+        grid = np.swapaxes(grid, 0, 1)
+    return grid
 
 
 def detect_chessboard(
@@ -229,14 +252,25 @@ def detect_chessboard(
     """
     if method not in CHESSBOARD_METHODS:
         raise ValueError(f"unknown chessboard method {method!r}; one of {CHESSBOARD_METHODS}")
-    if method == "sb-classic-subpix":
-        raw = _find_raw(gray, spec, "sb")
-        if raw is None:
-            raw = _find_raw(gray, spec, "classic")
-    else:
-        raw = _find_raw(gray, spec, method)
+    try:
+        if method == "sb-classic-subpix":
+            raw = _find_raw(gray, spec, "sb")
+            if raw is None:
+                raw = _find_raw(gray, spec, "classic")
+        else:
+            raw = _find_raw(gray, spec, method)
+    except _LargerBoard as larger:
+        small, large = sorted(larger.shape)
+        a, b = (large, small) if spec.cols >= spec.rows else (small, large)
+        return ChessboardResult(
+            np.empty((0, 2)),
+            failure=(
+                f"the board does not match the spec: a grid of {a}x{b} inner corners is "
+                f"visible, the spec {spec.canonical()} has {spec.cols}x{spec.rows}"
+            ),
+        )
     if raw is None:
-        return ChessboardResult(np.empty((0, 2)), failure="no chessboard found")
+        return ChessboardResult(np.empty((0, 2)), failure=NOT_FOUND)
     grid, angle = canonical_grid(raw)
     if abs(angle) > MAX_CANONICAL_ANGLE_DEG:
         return ChessboardResult(

@@ -33,8 +33,9 @@ MIN_HALF_WIDTH = 16
 CHESSBOARD_PROFILE_REACH = 0.4
 # The smallest grid searched for when diagnosing a failed chessboard half.
 DIAGNOSIS_GRID = (3, 3)
-# A diagnosed grid this many corner spacings clear of the half's border is a whole board.
-DIAGNOSIS_WHOLE_BOARD_CLEARANCE = 1.5
+# A diagnosed grid this many corner spacings clear of the half's border is a whole board:
+# one more row or column of corners would have fitted, so none is hidden.
+DIAGNOSIS_WHOLE_BOARD_CLEARANCE = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,12 +173,16 @@ def _detect_half(
             f"no contrast (grey levels spread over {quality.contrast:.0f} of 255)",
         )
     if isinstance(spec, ChessboardSpec):
-        from endomeasure.features.chessboard import DEFAULT_CHESSBOARD_METHOD, detect_chessboard
+        from endomeasure.features.chessboard import (
+            DEFAULT_CHESSBOARD_METHOD,
+            NOT_FOUND,
+            detect_chessboard,
+        )
 
         result = detect_chessboard(gray, spec, method or DEFAULT_CHESSBOARD_METHOD)
         if not result.ok:
             reason = result.failure
-            if reason == "no chessboard found":
+            if reason == NOT_FOUND:
                 reason = _diagnose_chessboard(gray, spec)
             return HalfDetection(half, empty_ids, empty_pixels, quality, reason)
         ids = np.arange(spec.n_corners, dtype=np.int64)

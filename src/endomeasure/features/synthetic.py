@@ -21,6 +21,7 @@ from collections.abc import Callable
 import numpy as np
 
 from endomeasure.conventions import Half
+from endomeasure.geometry.rotations import rotation_matrix
 from endomeasure.features.boards import BoardSpec, CharucoSpec, ChessboardSpec
 
 __all__ = [
@@ -62,14 +63,7 @@ def homography_from_pose(
     ndarray, shape (3, 3)
         ``H = K [r1 r2 t]``, normalised so ``H[2, 2] = 1``.
     """
-    rvec = np.asarray(rvec, dtype=float)
-    theta = np.linalg.norm(rvec)
-    if theta < 1e-15:
-        rotation = np.eye(3)
-    else:
-        k = rvec / theta
-        kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-        rotation = np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx
+    rotation = rotation_matrix(np.asarray(rvec, dtype=float))
     camera = np.array([[focal_px, 0, centre_px[0]], [0, focal_px, centre_px[1]], [0, 0, 1.0]])
     homography = camera @ np.column_stack(
         [rotation[:, 0], rotation[:, 1], np.asarray(tvec_mm, float)]

@@ -1,0 +1,60 @@
+"""ChArUco: the board's own ids in both halves, also when the board exceeds the view."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from endomeasure.conventions import Half
+from endomeasure.features.boards import parse_board_spec
+from endomeasure.features.charuco import detect_charuco
+from endomeasure.features.detect import detect_split_image
+
+from .conftest import SPLIT, render
+
+BOARD = "charuco:14x10:1.0:0.7:DICT_4X4_100"
+# Corners interpolated from markers and refined with a window kept off the markers
+# (2-3 px at these scales): measured ~0.08 px RMS with noise; an id error would be
+# a whole square (>= 15 px) off.
+CHARUCO_RMS_PX = 0.15
+
+
+@pytest.mark.parametrize("roll", [0.0, 25.0, 180.0])
+def test_partial_view_gives_board_ids_in_both_halves(roll, rng):
+    spec = parse_board_spec(BOARD)
+    # 13x9 inner corners at ~26 px per square: about 17 squares wide, more than a half
+    scene = render(
+        board=BOARD,
+        noise=2.0,
+        rng=rng,
+        roll_deg=roll,
+        distance_mm=16.0,
+        tilt_deg=(8.0, -10.0),
+        focal_px=420.0,
+    )
+    detection = detect_split_image(scene.image, spec, SPLIT)
+    for half_detection in detection.halves:
+        assert half_detection.ok, half_detection.failure
+        truth = scene.true_pixels[half_detection.half]
+        # the view is partial: some corners fall outside this half
+        assert np.isnan(truth).any()
+        assert len(half_detection.ids) >= 20
+        errors = np.linalg.norm(half_detection.pixels - truth[half_detection.ids], axis=1)
+        assert not np.isnan(errors).any()  # no id names a corner that is not in view
+        assert np.sqrt(np.mean(errors**2)) < CHARUCO_RMS_PX
+    common = np.intersect1d(detection.left.ids, detection.right.ids)
+    assert len(common) >= 10
+
+
+def test_no_markers_is_a_reason(chessboard_render):
+    spec = parse_board_spec(BOARD)
+    result = detect_charuco(np.ascontiguousarray(chessboard_render.image[:, :SPLIT]), spec)
+    assert not result.ok
+    assert "markers" in result.failure
+
+
+def test_wrong_dictionary_finds_nothing(rng):
+    scene = render(board=BOARD, rng=rng)
+    other = parse_board_spec("charuco:14x10:1.0:0.7:DICT_5X5_100")
+    result = detect_charuco(np.ascontiguousarray(scene.image[:, :SPLIT]), other)
+    assert not result.ok
