@@ -7,8 +7,8 @@ import pytest
 
 from endomeasure.conventions import Half
 from endomeasure.features.boards import parse_board_spec
-from endomeasure.geometry.rotations import rotation_matrix
 from endomeasure.features.synthetic import homography_from_pose, render_split_image
+from endomeasure.geometry.rotations import rotation_matrix
 
 IMAGE_SIZE = (640, 480)
 SPLIT = 320

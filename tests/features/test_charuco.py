@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from endomeasure.conventions import Half
 from endomeasure.features.boards import parse_board_spec
 from endomeasure.features.charuco import detect_charuco
 from endomeasure.features.detect import detect_split_image

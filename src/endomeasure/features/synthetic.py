@@ -21,8 +21,8 @@ from collections.abc import Callable
 import numpy as np
 
 from endomeasure.conventions import Half
-from endomeasure.geometry.rotations import rotation_matrix
 from endomeasure.features.boards import BoardSpec, CharucoSpec, ChessboardSpec
+from endomeasure.geometry.rotations import rotation_matrix
 
 __all__ = [
     "SyntheticSplitImage",
