@@ -10,7 +10,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
@@ -149,6 +149,7 @@ arrays = hnp.arrays(
 )
 
 
+@settings(max_examples=60)  # each example writes and reads a file
 @given(
     attrs=st.dictionaries(attr_names, attr_values, max_size=6),
     named_arrays=st.dictionaries(attr_names, arrays, max_size=3),
