@@ -321,3 +321,12 @@ def test_file_permissions_survive_an_edit(session_path):
     with edit_session(session_path) as w:
         w.write_record(Record("measurement", "m9"))
     assert os.stat(session_path).st_mode & 0o777 == 0o640
+
+
+def test_bad_arguments_and_closed_sessions_are_not_reported_as_damage(session_path):
+    s = open_session(session_path)
+    with pytest.raises(BadInputError, match="half must be 'left' or 'right'"):
+        s.detections(half="middle")
+    s.close()
+    with pytest.raises(RuntimeError, match="closed session"):
+        s.image_names()

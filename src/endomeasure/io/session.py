@@ -471,6 +471,8 @@ def _translating_errors(method):
 
     @functools.wraps(method)
     def wrapper(self, *args, **kwargs):
+        if self._h5 is None:
+            raise RuntimeError(f"{method.__name__}() on a closed session")  # a caller's bug
         try:
             return method(self, *args, **kwargs)
         except EndomeasureError:
@@ -556,8 +558,6 @@ class Session:
     # internal navigation
     def _node(self, location: str, type_name: str) -> Any | None:
         """The node at ``location`` if present, after checking its type and version."""
-        if self._h5 is None:
-            raise RuntimeError("the session is closed")
         if location not in self._h5:
             return None
         node = self._h5[location]
@@ -702,7 +702,10 @@ class Session:
         half: Half | str | int | None = None,
     ) -> list[Detection]:
         """Detections, filtered by board, image and half; sorted by board, image, half."""
-        want_half = None if half is None else Half.parse(half)
+        try:
+            want_half = None if half is None else Half.parse(half)
+        except ValueError as exc:
+            raise BadInputError(str(exc)) from None
         out = []
         for board_name, board_node in self._children(
             "detections", "detections", "board_detections"
