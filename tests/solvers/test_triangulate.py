@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
+from tests.conftest import make_pinhole_model
 
 from endomeasure.conventions import Status
 from endomeasure.solvers.triangulate import triangulate
-from tests.conftest import make_pinhole_model
 
 ORACLE_TOL_MM = 1e-6
 """Noise-free correspondences must give back the points (issue 7's acceptance); the
