@@ -5,7 +5,8 @@ Adding a command
 Append a function decorated with ``@command()``. Its body imports its pipeline function
 lazily (so ``endomeasure --help`` loads no numpy, cv2, scipy, h5py or matplotlib), calls
 it, and renders the returned report: rich tables and progress on stderr, or with
-``--json`` exactly one JSON document on stdout (use :func:`_print_json`). No maths here.
+``--json`` exactly one JSON document on stdout (use :func:`_print_json`; for progress,
+pass the callback of :func:`_progress` to the pipeline function). No maths here.
 The ``@command()`` wrapper is the error boundary: an
 :class:`~endomeasure.errors.EndomeasureError` becomes one line ``error: ...`` on stderr
 and its exit code (0 success, 1 ran but failed its goal, 2 bad usage or bad input); any
@@ -257,3 +258,100 @@ def add_images(
         f"{report.session}: added {len(report.added)} {report.image_set} image(s)"
         + (f", {len(report.unchanged)} already present" if report.unchanged else "")
     )
+
+
+@command("detect")
+def detect(
+    session: Annotated[
+        Path, typer.Argument(help="Session file (.h5); created if missing.", show_default=False)
+    ],
+    images: Annotated[
+        list[Path], typer.Argument(help="Image files or directories of images.", show_default=False)
+    ],
+    board: Annotated[
+        str,
+        typer.Option(
+            "--board",
+            help="Board spec: chessboard:COLSxROWS:SQUARE_MM (inner corners) or "
+            "charuco:SQUARES_XxSQUARES_Y:SQUARE_MM:MARKER_MM:DICT.",
+            show_default=False,
+        ),
+    ],
+    image_set: Annotated[
+        str, typer.Option("--set", help="Image set: calib, test or scene.")
+    ] = "calib",
+    split: Annotated[
+        str,
+        typer.Option(
+            "--split",
+            help="First column of the right half, or 'auto' (the session's split, else found "
+            "from the dark prism band).",
+        ),
+    ] = "auto",
+    workers: Annotated[int, typer.Option("--workers", help="Processes to use.")] = 1,
+    json_output: JsonOption = False,
+) -> None:
+    """Find target corners in both halves of every image and store them in the session.
+
+    Exit code 1 if any image failed (unreadable, wrong size, no board), 2 if nothing usable.
+    """
+    from endomeasure.pipeline.detect import detect_images
+
+    if json_output:
+        report = detect_images(
+            session, images, board, image_set=image_set, split=split, workers=workers
+        )
+        _print_json(report.to_dict())
+        raise typer.Exit(report.exit_code)
+
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+    from rich.table import Table
+
+    console = _stderr_console()
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn())
+    with Progress(*columns, console=console, transient=True) as progress:
+        tasks: dict[str, Any] = {}
+
+        def on_progress(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = progress.add_task(stage, total=total)
+            progress.update(tasks[stage], completed=done, total=total)
+
+        report = detect_images(
+            session,
+            images,
+            board,
+            image_set=image_set,
+            split=split,
+            workers=workers,
+            on_progress=on_progress,
+        )
+
+    table = Table(title=f"detect {report.board} ({report.image_set})", title_justify="left")
+    for column in ("image", "status", "left", "right", "edge width px (L/R)"):
+        table.add_column(column)
+    for image in report.images:
+        if not image.halves:
+            table.add_row(image.name or image.path, "[red]failed[/red]", image.error, "", "")
+            continue
+        cells = []
+        for label in ("left", "right"):
+            half = image.halves[label]
+            text = f"[red]{half.failure}[/red]" if half.failure else f"{half.n_corners} corners"
+            cells.append(text)
+        widths = "/".join(
+            "-" if image.halves[k].failure else f"{image.halves[k].edge_width_px:.2f}"
+            for k in ("left", "right")
+        )
+        colour = {"ok": "green", "one-half": "yellow", "failed": "red"}[image.status]
+        table.add_row(image.name, f"[{colour}]{image.status}[/{colour}]", *cells, widths)
+    console.print(table)
+    counts = report.counts
+    found, examined = report.halves_found
+    console.print(
+        f"split column {report.split} ({report.split_source}); images: {counts['ok']} ok, "
+        f"{counts['one-half']} one half, {counts['failed']} failed; halves with the board "
+        f"{found}/{examined}; "
+        + (f"stored in {report.session}" if report.stored else "nothing stored")
+    )
+    raise typer.Exit(report.exit_code)
