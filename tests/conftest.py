@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import os
 
+import endomeasure  # noqa: F401  (first: it pins BLAS to one thread before numpy loads)
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings

@@ -19,6 +19,7 @@ __all__ = [
     "Perpendicular",
     "intersect_plane",
     "refract",
+    "refract_xyz",
     "common_perpendicular",
     "normalize",
     "dot",
@@ -107,17 +108,40 @@ def refract(directions: np.ndarray, normal: np.ndarray, eta: float | np.ndarray)
     ``t = eta d + (eta c - sqrt(k)) m``; ``k < 0`` is total internal reflection
     (SPEC 4.2). ``t`` is a unit vector when ``d`` and ``m`` are.
     """
-    cos_n = dot(directions, normal)
-    # m = sign * normal faces the incoming ray (m.d < 0); c = -m.d = |d.n|
-    sign = np.where(cos_n < 0, 1.0, -1.0)
-    c = np.abs(cos_n)
-    k = 1.0 - eta**2 * (1.0 - c**2)
-    tir = ~(k >= 0)  # also catches NaN
-    root = np.sqrt(np.where(tir, np.nan, k))
-    t = eta * np.asarray(directions) if np.ndim(eta) == 0 else eta[..., None] * directions
-    t = t + ((eta * c - root) * sign)[..., None] * normal
+    d = np.asarray(directions, dtype=np.float64)
+    m = np.asarray(normal, dtype=np.float64)
+    tx, ty, tz, tir = refract_xyz(d[..., 0], d[..., 1], d[..., 2], m[..., 0], m[..., 1], m[..., 2], eta)
     status = np.where(tir, Status.TOTAL_INTERNAL_REFLECTION, Status.OK).astype(STATUS_DTYPE)
-    return Refraction(t, status)
+    return Refraction(np.stack([tx, ty, tz], axis=-1), status)
+
+
+def refract_xyz(dx, dy, dz, nx, ny, nz, eta):
+    """Component form of :func:`refract` for hot loops (no stacking of (N, 3) arrays).
+
+    Parameters
+    ----------
+    dx, dy, dz : ndarray, shape (...)
+        Unit incident direction components.
+    nx, ny, nz : float or ndarray, shape (...)
+        Unit normal components, either orientation.
+    eta : float or ndarray
+        ``n1 / n2``.
+
+    Returns
+    -------
+    tx, ty, tz : ndarray, shape (...)
+        Refracted unit direction, NaN where total internal reflection.
+    tir : ndarray of bool, shape (...)
+    """
+    cos_n = dx * nx + dy * ny + dz * nz
+    c = np.abs(cos_n)
+    k = 1.0 - eta * eta * (1.0 - c * c)
+    tir = ~(k >= 0)  # also catches NaN
+    with np.errstate(invalid="ignore"):
+        coef = eta * c - np.sqrt(k)
+    # m = +-normal faces the incoming ray (m.d < 0): t = eta d + coef m
+    coef = np.where(cos_n < 0, coef, -coef)
+    return eta * dx + coef * nx, eta * dy + coef * ny, eta * dz + coef * nz, tir
 
 
 class Perpendicular(NamedTuple):

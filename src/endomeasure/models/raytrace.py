@@ -27,17 +27,16 @@ import numpy as np
 
 from endomeasure.conventions import STATUS_DTYPE, Half, Status
 from endomeasure.geometry.distortion import distort, max_monotonic_radius2, undistort
-from endomeasure.geometry.rays import intersect_plane, refract
+from endomeasure.models import _prism_kernels
 from endomeasure.models.base import CameraModel
 
 __all__ = ["RaytraceModel", "PrismTrace", "plane_normal", "AIM_TOL_PX", "AIM_MAX_ITER"]
 
-AIM_TOL_PX = 1e-9
-"""Ray aiming stops when the pixel step falls below this (px). The iteration contracts
-by about 1e-3 per step, so the remaining error is far below the 1e-6 px the spec asks."""
+AIM_TOL_PX = 1e-7
+"""Ray aiming stops when the pixel step falls below this (px); the iteration converges
+superlinearly, so the remaining error is far below the 1e-6 px the spec asks."""
 AIM_MAX_ITER = 25
 UNDISTORT_TOL_PX = 1e-10  # px
-_CHUNK = 16384  # points per block in ray aiming: keeps the working set in cache
 
 
 def plane_normal(a: float, b: float) -> np.ndarray:
@@ -55,11 +54,14 @@ class PrismTrace(NamedTuple):
 
 
 class _AimMap(NamedTuple):
-    """Per-half polynomial start map for ray aiming (see ``_fit_aim_map``)."""
+    """Per-half start data for ray aiming (see ``_fit_aim_map``)."""
 
     centre: np.ndarray  # (3,) mm: point nearest to all the half's object rays
     exponents: np.ndarray  # (F, 3) int: powers of wx, wy, q per feature
     coeffs: np.ndarray  # (F, 2): feature weights -> lens coordinates x, y
+    lut: np.ndarray  # (K, NY, NX, 2): lens coordinates on a regular (q, wy, wx) grid
+    lut_origin: np.ndarray  # (3,): wx, wy, q of lut[0, 0, 0]
+    lut_step: np.ndarray  # (3,): grid steps in wx, wy, q
 
 
 class RaytraceModel(CameraModel):
@@ -104,6 +106,16 @@ class RaytraceModel(CameraModel):
     def _lens_coeffs(self) -> tuple[float, float, float, float, float]:
         return (self.k1, self.k2, self.p1, self.p2, self.k3)
 
+    def faces_array(self, half: Half) -> np.ndarray:
+        """Rear and front face of a half packed for the compiled kernels, float64[8]."""
+        half = Half.parse(half)
+        key = ("faces", half)
+        if key not in self._cache:
+            rear, d_rear = self.face("rear")
+            front, d_front = self.face(half.label)
+            self._cache[key] = np.array([*rear, d_rear, *front, d_front])
+        return self._cache[key]
+
     def trace(self, x: np.ndarray, y: np.ndarray, half: Half) -> PrismTrace:
         """Trace undistorted normalised lens coordinates through the prism.
 
@@ -119,18 +131,21 @@ class RaytraceModel(CameraModel):
         -------
         PrismTrace
             Object-space rays; ``TOTAL_INTERNAL_REFLECTION`` or ``BEHIND`` (a face missed)
-            where the trace fails.
+            where the trace fails, NaN there.
+
+        Notes
+        -----
+        lens direction ``(x, y, 1)/norm`` -> rear face, refract air to glass
+        (``eta = 1/n_glass``) -> the half's front face, refract glass to air
+        (``eta = n_glass``); SPEC 4.2.
         """
-        n_rear, d_rear = self.face("rear")
-        n_front, d_front = self.face("left" if Half.parse(half) is Half.LEFT else "right")
-        d0 = np.stack([x, y, np.ones_like(x)], axis=-1)
-        d0 /= np.linalg.norm(d0, axis=-1, keepdims=True)
-        entry = intersect_plane(np.zeros(3), d0, n_rear, d_rear)
-        inside = refract(d0, n_rear, 1.0 / self.n_glass)
-        exit_ = intersect_plane(entry.points, inside.directions, n_front, d_front)
-        out = refract(inside.directions, n_front, self.n_glass)
-        status = np.maximum.reduce([entry.status, inside.status, exit_.status, out.status])
-        return PrismTrace(exit_.points, out.directions, status.astype(STATUS_DTYPE))
+        x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1)
+        y = np.ascontiguousarray(y, dtype=np.float64).reshape(-1)
+        origins = np.empty((x.size, 3))
+        directions = np.empty((x.size, 3))
+        status = np.empty(x.size, dtype=STATUS_DTYPE)
+        _prism_kernels.trace_rays(x, y, self.faces_array(half), self.n_glass, origins, directions, status)
+        return PrismTrace(origins, directions, status)
 
     def _rays(self, pixels, half):
         und = undistort(
@@ -155,6 +170,22 @@ class RaytraceModel(CameraModel):
         status = np.where((status == Status.OK) & outside_lens, Status.OUTSIDE_HALF, status)
         return pixels, status.astype(STATUS_DTYPE)
 
+    def with_params(self, params: np.ndarray) -> "RaytraceModel":
+        """A new model with other parameters.
+
+        When every parameter moves by less than ``_INHERIT_START_REL`` (relative, or
+        absolute below 1), the new model reuses this one's ray-aiming start maps: they
+        only seed the iteration, which converges to the new model's exact answer, and
+        rebuilding them would dominate finite-difference Jacobians in calibration.
+        """
+        new = super().with_params(params)
+        change = np.abs(new.params - self.params) / np.maximum(np.abs(self.params), 1.0)
+        if change.max() < _INHERIT_START_REL:
+            for key, value in self._cache.items():
+                if key[0] == "aim":
+                    new._cache[key] = value
+        return new
+
     def aim_map(self, half: Half) -> _AimMap:
         """The cached polynomial start map of a half for ray aiming."""
         half = Half.parse(half)
@@ -165,6 +196,8 @@ class RaytraceModel(CameraModel):
 
 
 # ----- ray aiming ----------------------------------------------------------------------
+
+_INHERIT_START_REL = 1e-3
 
 _AIM_DEPTHS_MM = (3.0, 5.0, 8.0, 12.0, 20.0, 35.0, 60.0, 120.0, 400.0)
 _AIM_GRID = 41  # samples per axis over a half when fitting the start map
@@ -179,29 +212,9 @@ def _aim_exponents() -> np.ndarray:
     return np.array(exps, dtype=np.int64)
 
 
-def _aim_features(wx, wy, q, exponents, derivatives: bool = False):
-    """Feature matrix (N, F) of the start map and, optionally, its w-derivatives."""
-    top = int(exponents.max()) + 1
-    px = [np.ones_like(wx)]
-    py = [np.ones_like(wy)]
-    pq = [np.ones_like(q)]
-    for _ in range(1, top):
-        px.append(px[-1] * wx)
-        py.append(py[-1] * wy)
-        pq.append(pq[-1] * q)
-    F = np.empty((wx.shape[0], len(exponents)))
-    if derivatives:
-        Fx = np.zeros_like(F)
-        Fy = np.zeros_like(F)
-    for col, (i, j, k) in enumerate(exponents):
-        yq = py[j] * pq[k]
-        F[:, col] = px[i] * yq
-        if derivatives:
-            if i:
-                Fx[:, col] = i * px[i - 1] * yq
-            if j:
-                Fy[:, col] = j * px[i] * py[j - 1] * pq[k]
-    return (F, Fx, Fy) if derivatives else F
+def _aim_features(wx, wy, q, exponents):
+    """Feature matrix (N, F) of the start map: ``wx^i wy^j q^k`` per exponent row."""
+    return np.stack([wx**i * wy**j * q**k for i, j, k in exponents], axis=-1)
 
 
 def _fit_aim_map(model: RaytraceModel, half: Half) -> _AimMap:
@@ -251,11 +264,48 @@ def _fit_aim_map(model: RaytraceModel, half: Half) -> _AimMap:
     F = _aim_features(np.concatenate(wxs), np.concatenate(wys), np.concatenate(qs), exponents)
     target = np.stack([np.concatenate(xs), np.concatenate(ys)], axis=-1)
     scale = np.linalg.norm(F, axis=0)
-    coeffs, *_ = np.linalg.lstsq(F / scale, target, rcond=None)
-    return _AimMap(centre, exponents, coeffs / scale[:, None])
+    Fs = F / scale  # unit columns: the normal equations stay well conditioned
+    coeffs = np.linalg.solve(Fs.T @ Fs, Fs.T @ target) / scale[:, None]
+    wx_all, wy_all = np.concatenate(wxs), np.concatenate(wys)
+    no_lut = (np.full((1, 1, 1, 2), np.nan), np.zeros(3), np.ones(3))
+    poly = _AimMap(centre, exponents, coeffs, *no_lut)
+    return poly._replace(**_build_aim_table(model, half, poly, wx_all, wy_all))
 
 
-def aim_rays(model: RaytraceModel, points: np.ndarray, half: Half) -> tuple[np.ndarray, ...]:
+_LUT_STEP_W = 0.05  # table spacing in virtual-camera tangent units (~12 px at f = 230 px)
+_LUT_DEPTHS_MM = (4.0, 1000.0)  # nearest and farthest slice of the table, from the centre C
+_LUT_SLICES = 8
+
+
+def _build_aim_table(model, half, poly: _AimMap, wx, wy) -> dict:
+    """Tabulate exact aiming solutions on a regular (q, wy, wx) grid.
+
+    A trilinear look-up in this table starts ray aiming within a few hundredths of a
+    pixel, with a Jacobian from the same cell, so Broyden needs about three traces
+    instead of six from the polynomial start (whose error is pixels: the map of a
+    55-degree prism half is far from polynomial near the field edges). Nodes without a
+    valid ray hold NaN; points there fall back to the polynomial.
+    """
+    lo = np.array([wx.min(), wy.min()]) - _LUT_STEP_W
+    hi = np.array([wx.max(), wy.max()]) + _LUT_STEP_W
+    n_x, n_y = (np.ceil((hi - lo) / _LUT_STEP_W).astype(int) + 1).tolist()
+    q_near, q_far = 1.0 / _LUT_DEPTHS_MM[0], 1.0 / _LUT_DEPTHS_MM[1]
+    qs = np.linspace(q_far, q_near, _LUT_SLICES)
+    gq, gy, gx = np.meshgrid(qs, lo[1] + _LUT_STEP_W * np.arange(n_y),
+                             lo[0] + _LUT_STEP_W * np.arange(n_x), indexing="ij")  # fmt: skip
+    nodes = poly.centre + np.stack([gx, gy, np.ones_like(gx)], axis=-1) / gq[..., None]
+    x, y, status = aim_rays(model, nodes.reshape(-1, 3), half, poly)
+    table = np.stack([x, y], axis=-1).reshape(_LUT_SLICES, n_y, n_x, 2)
+    return dict(
+        lut=np.ascontiguousarray(table),
+        lut_origin=np.array([lo[0], lo[1], q_far]),
+        lut_step=np.array([_LUT_STEP_W, _LUT_STEP_W, qs[1] - qs[0]]),
+    )
+
+
+def aim_rays(
+    model: RaytraceModel, points: np.ndarray, half: Half, aim: _AimMap | None = None
+) -> tuple[np.ndarray, ...]:
     """Lens coordinates whose traced ray passes through each point (ray aiming).
 
     Parameters
@@ -264,6 +314,8 @@ def aim_rays(model: RaytraceModel, points: np.ndarray, half: Half) -> tuple[np.n
     points : ndarray, shape (N, 3), mm
         Finite points in the camera frame.
     half : Half
+    aim : _AimMap, optional
+        Start data; the model's own by default.
 
     Returns
     -------
@@ -271,85 +323,28 @@ def aim_rays(model: RaytraceModel, points: np.ndarray, half: Half) -> tuple[np.n
         Undistorted normalised lens coordinates, NaN where status is not OK.
     status : ndarray, shape (N,), uint8
         ``BEHIND`` for points not in front of the half's front face, ``NOT_CONVERGED``
-        where the iteration did not reach ``AIM_TOL_PX``, or the trace failure
-        (``TOTAL_INTERNAL_REFLECTION``) at the last iterate.
+        where the iteration did not reach ``AIM_TOL_PX`` in ``AIM_MAX_ITER`` traces, or
+        the trace failure (``TOTAL_INTERNAL_REFLECTION``) where no step keeps the ray
+        inside the prism.
 
     Notes
     -----
-    A chord (fixed-Jacobian Newton) iteration in the two lens coordinates. With the
-    start map ``g`` (see ``_fit_aim_map``) and ``A = dg/dw`` evaluated at the target
-    point P, each step traces the current ray, takes its point Q at the depth of P and
-    moves ``x <- x - A (w(Q) - w(P))``. At a fixed point Q = P, i.e. the ray passes
-    through P exactly; the contraction factor per step is the relative error of ``A``
-    (about 1e-3 here), so two to four traces per point suffice.
+    The unknowns are the two lens coordinates ``x``; the residual ``e(x)`` is the offset,
+    in the plane ``z = P_z``, of the traced ray from the point P. Broyden's method solves
+    ``e(x) = 0``: the start ``x0 = g(w(P))`` and the start inverse Jacobian
+    ``dg/dw / (P - C)_z`` come from the start map ``g`` of ``_fit_aim_map`` (a table of
+    exact solutions, or a polynomial); each step traces once and updates the 2x2 inverse
+    Jacobian by the rank-one ("good") Broyden formula, which converges superlinearly.
+    A step that leaves the prism (TIR, missed face) is halved until it stays inside.
+    The loop runs per point in :mod:`endomeasure.models._prism_kernels`.
     """
-    n = points.shape[0]
-    x = np.full(n, np.nan)
-    y = np.full(n, np.nan)
-    status = np.full(n, Status.OK, dtype=STATUS_DTYPE)
-    aim = model.aim_map(half)
-    n_front, d_front = model.face("left" if half is Half.LEFT else "right")
-    for start in range(0, n, _CHUNK):
-        sl = slice(start, min(start + _CHUNK, n))
-        x[sl], y[sl], status[sl] = _aim_block(model, points[sl], half, aim, n_front, d_front)
-    return x, y, status
-
-
-def _aim_block(model, P, half, aim, n_front, d_front):
-    n = P.shape[0]
-    x = np.full(n, np.nan)
-    y = np.full(n, np.nan)
-    rel = P - aim.centre
-    # A point must lie beyond the front face to be reached by a ray leaving it.
-    status = np.where(P @ n_front > d_front, Status.OK, Status.BEHIND).astype(STATUS_DTYPE)
-    status[~(rel[:, 2] > 0)] = Status.BEHIND
-    idx = np.flatnonzero(status == Status.OK)
-    if idx.size == 0:
-        return x, y, status
-    depth = rel[idx, 2]
-    wx, wy, q = rel[idx, 0] / depth, rel[idx, 1] / depth, 1.0 / depth
-    F, Fx, Fy = _aim_features(wx, wy, q, aim.exponents, derivatives=True)
-    xk, yk = (F @ aim.coeffs).T
-    # A = d(x, y)/d(wx, wy); the step in w is the offset at P's depth divided by depth,
-    # fold the 1/depth into A once.
-    gx = Fx @ aim.coeffs  # (N, 2): d(x, y)/d wx
-    gy = Fy @ aim.coeffs  # (N, 2): d(x, y)/d wy
-    a11, a21 = gx[:, 0] * q, gx[:, 1] * q
-    a12, a22 = gy[:, 0] * q, gy[:, 1] * q
-    target = P[idx]
-    tol_x = AIM_TOL_PX / model.fx
-    tol_y = AIM_TOL_PX / model.fy
-    active = np.arange(idx.size)
-    last_fail = np.zeros(idx.size, dtype=STATUS_DTYPE)
-    done = np.zeros(idx.size, dtype=bool)
-    prev_x, prev_y = xk.copy(), yk.copy()
-    for _ in range(AIM_MAX_ITER):
-        if active.size == 0:
-            break
-        tr = model.trace(xk[active], yk[active], half)
-        good = tr.status == Status.OK
-        last_fail[active] = np.where(good, Status.OK, tr.status)
-        # Failed traces (a step into the TIR region): go back half way and try again.
-        bad = active[~good]
-        xk[bad] = 0.5 * (xk[bad] + prev_x[bad])
-        yk[bad] = 0.5 * (yk[bad] + prev_y[bad])
-        act = active[good]
-        o, d = tr.origins[good], tr.directions[good]
-        tgt = target[act]
-        s = (tgt[:, 2] - o[:, 2]) / d[:, 2]
-        ex = o[:, 0] + s * d[:, 0] - tgt[:, 0]
-        ey = o[:, 1] + s * d[:, 1] - tgt[:, 1]
-        dx = -(a11[act] * ex + a12[act] * ey)
-        dy = -(a21[act] * ex + a22[act] * ey)
-        prev_x[act], prev_y[act] = xk[act], yk[act]
-        xk[act] += dx
-        yk[act] += dy
-        conv = (np.abs(dx) < tol_x) & (np.abs(dy) < tol_y) & (s > 0)
-        done[act[conv]] = True
-        active = np.concatenate([act[~conv], bad])
-    ok = done
-    sub = np.where(ok, Status.OK, np.where(last_fail != Status.OK, last_fail, Status.NOT_CONVERGED))
-    status[idx] = sub
-    x[idx] = np.where(ok, xk, np.nan)
-    y[idx] = np.where(ok, yk, np.nan)
-    return x, y, status
+    half = Half.parse(half)
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    aim = model.aim_map(half) if aim is None else aim
+    xy = np.empty((points.shape[0], 2))
+    status = np.empty(points.shape[0], dtype=STATUS_DTYPE)
+    _prism_kernels.aim_rays(
+        points, model.faces_array(half), model.n_glass, aim.centre, aim.exponents, aim.coeffs,
+        aim.lut, aim.lut_origin, aim.lut_step, AIM_TOL_PX / model.fx, AIM_TOL_PX / model.fy, AIM_MAX_ITER, xy, status,
+    )  # fmt: skip
+    return xy[:, 0], xy[:, 1], status
