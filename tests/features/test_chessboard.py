@@ -135,3 +135,24 @@ def test_every_method_finds_the_board_and_orders_it(chessboard_render, method):
 def test_unknown_method_is_a_programming_error():
     with pytest.raises(ValueError, match="unknown chessboard method"):
         detect_chessboard(np.zeros((10, 10), np.uint8), parse_board_spec("chessboard:3x3:1"), "x")
+
+
+def test_outer_edge_is_not_taken_for_a_line_of_corners():
+    """CALIB_CB_LARGER once extended this board by a column along its outer edge."""
+    spec = parse_board_spec("chessboard:9x6:1")
+    scene = render(roll_deg=12, noise=2.0, rng=np.random.default_rng(3))
+    crop = np.ascontiguousarray(scene.image[:, :SPLIT])
+    result = detect_chessboard(crop, spec)
+    assert result.ok, result.failure
+    assert _errors(result, scene.true_pixels[Half.LEFT]).max() < 0.5
+
+
+def test_saddle_scores_tell_corners_from_edges(chessboard_render):
+    from endomeasure.features.chessboard import saddle_scores
+
+    truth = chessboard_render.true_pixels[Half.LEFT].reshape(6, 9, 2)
+    image = chessboard_render.image
+    assert saddle_scores(image, truth).min() > 0.9
+    # one column further out: square edges against the white margin
+    outside = truth[:, :1] - (truth[:, 1:2] - truth[:, :1])
+    assert np.median(saddle_scores(image, np.concatenate([outside, truth], axis=1))[:, 0]) < 0.6

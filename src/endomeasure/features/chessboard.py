@@ -51,6 +51,8 @@ __all__ = [
     "canonical_grid",
     "detect_chessboard",
     "refine_corners",
+    "saddle_scores",
+    "trim_false_lines",
 ]
 
 CHESSBOARD_METHODS = (
@@ -78,6 +80,9 @@ SUBPIX_EPSILON_PX = 1e-4
 SUBPIX_WINDOW_FRACTION = 0.5
 SUBPIX_MIN_HALFWINDOW, SUBPIX_MAX_HALFWINDOW = 2, 15
 NOT_FOUND = "no chessboard found"
+# Grid lines whose median X-junction score is lower are not corners (a real X scores
+# about 1, a square's edge against the white margin 0.5).
+MIN_SADDLE_SCORE = 0.75
 
 
 @dataclasses.dataclass(frozen=True)
@@ -222,11 +227,78 @@ def _find_raw(gray: np.ndarray, spec: ChessboardSpec, method: str) -> np.ndarray
         return None
     # meta's shape is the found grid as (lines, corners per line) in the corners' order.
     shape = tuple(int(n) for n in meta.shape[:2])
-    if sorted(shape) != sorted(spec.pattern_size) or len(corners) != spec.n_corners:
-        raise _LargerBoard(shape)
     grid = corners.reshape(shape[0], shape[1], 2).astype(np.float64)
+    # CALIB_CB_LARGER sometimes extrapolates a line of "corners" along the board's outer
+    # edge, where the outer squares meet the white margin: drop lines that are not X's.
+    grid = trim_false_lines(gray, grid)
+    shape = grid.shape[:2]
+    if sorted(shape) != sorted(spec.pattern_size):
+        raise _LargerBoard(shape)
     if shape != (spec.rows, spec.cols):
         grid = np.swapaxes(grid, 0, 1)
+    return grid
+
+
+def saddle_scores(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """How much each grid point looks like a chessboard X-junction, 0..1.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (height, width)
+    grid : ndarray, shape (rows, cols, 2), px
+
+    Returns
+    -------
+    ndarray, shape (rows, cols)
+        ``|(I1 + I3) - (I2 + I4)| / (2 (max - min))`` over the four quadrant samples
+        ``p + (+-a +- b) / 4`` (a, b the local grid steps; I1, I3 and I2, I4 diagonal
+        pairs): 1 for an X-junction, 0.5 where a square meets the board's margin.
+    """
+    from scipy.ndimage import map_coordinates
+
+    step_col = np.gradient(grid, axis=1)
+    step_row = np.gradient(grid, axis=0)
+    signs = ((1, 1), (-1, 1), (-1, -1), (1, -1))
+    samples = []
+    for sa, sb in signs:
+        points = grid + 0.25 * (sa * step_col + sb * step_row)
+        coords = [points[..., 1].ravel(), points[..., 0].ravel()]
+        samples.append(map_coordinates(gray.astype(np.float64), coords, order=1, mode="nearest"))
+    q = np.stack(samples).reshape(4, *grid.shape[:2])
+    spread = q.max(axis=0) - q.min(axis=0)
+    score = np.abs(q[0] + q[2] - q[1] - q[3]) / np.maximum(2 * spread, 1e-9)
+    return np.where(spread > 0, score, 0.0)
+
+
+def trim_false_lines(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Drop outer rows and columns of a grid whose points are not X-junctions.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (height, width)
+    grid : ndarray, shape (rows, cols, 2), px
+
+    Returns
+    -------
+    ndarray, shape (rows', cols', 2)
+    """
+    while min(grid.shape[:2]) > 2:
+        scores = saddle_scores(gray, grid)
+        edges = {
+            "top": np.median(scores[0]),
+            "bottom": np.median(scores[-1]),
+            "left": np.median(scores[:, 0]),
+            "right": np.median(scores[:, -1]),
+        }
+        worst = min(edges, key=edges.get)
+        if edges[worst] >= MIN_SADDLE_SCORE:
+            break
+        grid = {
+            "top": grid[1:],
+            "bottom": grid[:-1],
+            "left": grid[:, 1:],
+            "right": grid[:, :-1],
+        }[worst]
     return grid
 
 

@@ -121,16 +121,19 @@ def _diagnose_chessboard(gray: np.ndarray, spec: ChessboardSpec) -> str:
     """
     import cv2
 
+    from endomeasure.features.chessboard import trim_false_lines
+
     found, corners, meta = cv2.findChessboardCornersSBWithMeta(
         gray, DIAGNOSIS_GRID, cv2.CALIB_CB_LARGER
     )
     if not found or meta is None or corners is None:
         return "no chessboard found"
-    small, large = sorted(meta.shape[:2])
+    grid = trim_false_lines(gray, corners.reshape(meta.shape[0], meta.shape[1], 2))
+    corners = grid.reshape(-1, 2)
+    small, large = sorted(grid.shape[:2])
     a, b = (large, small) if spec.cols >= spec.rows else (small, large)
     if (small, large) == tuple(sorted((spec.cols, spec.rows))):
         return "a board of the spec's size is visible but its corners could not be ordered"
-    corners = corners.reshape(-1, 2)
     spacing = np.median(np.linalg.norm(np.diff(corners, axis=0), axis=1))
     height, width = gray.shape
     clearance = min(

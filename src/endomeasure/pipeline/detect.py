@@ -1,0 +1,489 @@
+"""``endomeasure detect``: board corners in both halves of many images, into the session.
+
+Steps: expand the given paths; read and decode every file (per-file errors are results,
+not exceptions); fix the split (the session's stored split, a given column, or the
+median of the per-image band estimates of :func:`endomeasure.features.split.find_split`);
+detect in both halves of every image (:func:`endomeasure.features.detect.detect_split_image`);
+then store images, board, split and detections in one atomic session edit. Reading and
+detection run in ``workers`` processes (``concurrent.futures.ProcessPoolExecutor``);
+OpenCV's own threading is switched off in every process so that N workers use N cores.
+
+Image status: ``ok`` (board in both halves), ``one-half`` (in one half only), ``failed``
+(no board in either half, or the image could not be used: unreadable, not an image,
+another size than the session's, a different image under a stored name).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from endomeasure.conventions import Half
+from endomeasure.errors import BadInputError, EndomeasureError
+
+__all__ = ["DetectReport", "ImageResult", "detect_images", "board_attrs"]
+
+STATUS_OK, STATUS_ONE_HALF, STATUS_FAILED = "ok", "one-half", "failed"
+QUALITY_KIND = "edge_width_px"
+"""What a stored detection's ``quality`` is: the 10-90 % edge width at its corners, px."""
+
+
+@dataclasses.dataclass(frozen=True)
+class HalfSummary:
+    """One half of one image in the report."""
+
+    n_corners: int
+    edge_width_px: float
+    failure: str
+
+
+@dataclasses.dataclass(frozen=True)
+class ImageResult:
+    """What happened to one input file.
+
+    Attributes
+    ----------
+    path : str
+    name : str
+        Image name in the session ('' when the file could not be read).
+    status : str
+        ``ok``, ``one-half`` or ``failed``.
+    error : str
+        Why the image could not be used at all ('' otherwise).
+    halves : dict of str to HalfSummary
+        ``left`` / ``right``; empty when the image could not be used.
+    """
+
+    path: str
+    name: str
+    status: str
+    error: str = ""
+    halves: dict = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class DetectReport:
+    """The outcome of :func:`detect_images`.
+
+    Attributes
+    ----------
+    session, board, board_name, image_set : str
+    split : int or None, px
+        The split used (None when no image could be read).
+    split_source : str
+        ``session`` (stored before), ``given`` or ``auto``.
+    images : list of ImageResult
+    stored : bool
+        Whether the session was written (not when nothing usable was found).
+    """
+
+    session: str
+    board: str
+    board_name: str
+    image_set: str
+    split: int | None
+    split_source: str
+    images: list[ImageResult]
+    stored: bool
+
+    @property
+    def counts(self) -> dict[str, int]:
+        out = {STATUS_OK: 0, STATUS_ONE_HALF: 0, STATUS_FAILED: 0}
+        for image in self.images:
+            out[image.status] += 1
+        return out
+
+    @property
+    def halves_found(self) -> tuple[int, int]:
+        """(halves with the board, halves examined)."""
+        examined = [h for image in self.images for h in image.halves.values()]
+        return sum(1 for h in examined if not h.failure), len(examined)
+
+    @property
+    def exit_code(self) -> int:
+        """0 all images usable, 1 some image failed, 2 nothing usable."""
+        counts = self.counts
+        if counts[STATUS_OK] + counts[STATUS_ONE_HALF] == 0:
+            return 2
+        return 1 if counts[STATUS_FAILED] else 0
+
+    def to_dict(self) -> dict[str, Any]:
+        found, examined = self.halves_found
+        return {
+            "session": self.session,
+            "board": self.board,
+            "board_name": self.board_name,
+            "image_set": self.image_set,
+            "split": self.split,
+            "split_source": self.split_source,
+            "stored": self.stored,
+            "counts": self.counts,
+            "halves_found": found,
+            "halves_examined": examined,
+            "exit_code": self.exit_code,
+            "images": [
+                {
+                    "path": image.path,
+                    "name": image.name,
+                    "status": image.status,
+                    "error": image.error,
+                    "halves": {k: dataclasses.asdict(v) for k, v in image.halves.items()},
+                }
+                for image in self.images
+            ],
+        }
+
+
+def board_attrs(spec) -> tuple[dict[str, Any], dict[str, str]]:
+    """Parsed values of a board stored with it, and their units."""
+    attrs: dict[str, Any] = {"kind": spec.kind, "cols": spec.cols, "rows": spec.rows}
+    units = {"square_mm": "mm"}
+    attrs["square_mm"] = spec.square_mm
+    if spec.kind == "charuco":
+        attrs.update(
+            squares_x=spec.squares_x,
+            squares_y=spec.squares_y,
+            marker_mm=spec.marker_mm,
+            dictionary=spec.dictionary,
+        )
+        units["marker_mm"] = "mm"
+    return attrs, units
+
+
+# ----------------------------------------------------------------- worker functions
+
+
+def _init_worker() -> None:
+    """One OpenCV thread per process: parallelism comes from the process pool."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    # Per-file problems are reported per image; OpenCV's own warnings would only add noise.
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+
+
+def _read_task(path: str, image_set: str, want_split: bool):
+    """Read and decode one file; estimate its split when asked. Never raises."""
+    from endomeasure.features.split import find_split
+    from endomeasure.io.images import read_image_file
+
+    try:
+        record = read_image_file(path, image_set)
+    except EndomeasureError as exc:
+        return path, None, None, exc.what
+    split = None
+    if want_split:
+        try:
+            split = find_split(record.pixels).split
+        except EndomeasureError:
+            split = None
+    return path, record, split, ""
+
+
+def _detect_task(name: str, pixels: np.ndarray, board: str, split: int, method: str | None):
+    from endomeasure.features.detect import detect_split_image
+
+    return name, detect_split_image(pixels, board, split, method=method)
+
+
+def _run(
+    function: Callable,
+    argument_lists: Sequence[tuple],
+    workers: int,
+    on_done: Callable[[], None],
+) -> list:
+    """Apply ``function`` to each argument tuple, in order, in ``workers`` processes."""
+    if workers <= 1 or len(argument_lists) <= 1:
+        _init_worker()
+        results = []
+        for arguments in argument_lists:
+            results.append(function(*arguments))
+            on_done()
+        return results
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    results: list = [None] * len(argument_lists)
+    with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker) as pool:
+        futures = {pool.submit(function, *args): index for index, args in enumerate(argument_lists)}
+        for future in as_completed(futures):
+            results[futures[future]] = future.result()
+            on_done()
+    return results
+
+
+# ----------------------------------------------------------------------- the command
+
+
+def _expand(paths: Iterable[str | os.PathLike]) -> tuple[list[str], list[ImageResult]]:
+    """Image files from files and directories; a bad path is a failed result, not an error."""
+    from endomeasure.io.images import find_image_files
+
+    files, failures = [], []
+    for raw in paths:
+        try:
+            files.extend(str(p) for p in find_image_files([raw]))
+        except BadInputError as exc:
+            failures.append(
+                ImageResult(path=str(raw), name="", status=STATUS_FAILED, error=exc.what)
+            )
+    return files, failures
+
+
+def _parse_split(split: str | int) -> int | None:
+    if isinstance(split, int):
+        return split
+    text = str(split).strip().lower()
+    if text == "auto":
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise BadInputError(
+            f"--split must be 'auto' or a column number, not {split!r}",
+            hint="e.g. --split auto or --split 640",
+        ) from None
+
+
+def detect_images(
+    session_path: str | os.PathLike,
+    paths: Iterable[str | os.PathLike],
+    board: str,
+    *,
+    image_set: str = "calib",
+    split: str | int = "auto",
+    workers: int = 1,
+    method: str | None = None,
+    on_progress: Callable[[str, int, int], None] | None = None,
+) -> DetectReport:
+    """Detect a board in both halves of image files and store everything in a session.
+
+    Parameters
+    ----------
+    session_path : path-like
+        Created when missing.
+    paths : iterable of path-like
+        Image files and/or directories of images.
+    board : str
+        Board spec (``chessboard:COLSxROWS:SQUARE_MM`` or ``charuco:...``).
+    image_set : str
+        ``calib``, ``test`` or ``scene``.
+    split : 'auto' or int
+        ``auto`` keeps the session's split, or finds one (median over the images);
+        a column overrides when the session has none or the same one.
+    workers : int
+        Processes for reading and detection.
+    method : str, optional
+        Chessboard method; the measured best by default.
+    on_progress : callable(stage, done, total), optional
+        ``stage`` is ``"reading"`` or ``"detecting"``.
+
+    Returns
+    -------
+    DetectReport
+        Per-image results; :attr:`DetectReport.exit_code` says how the command should end.
+
+    Raises
+    ------
+    BadInputError
+        Malformed board spec, image set, split or worker count; a split that
+        contradicts the one stored with existing detections; no split could be found.
+    SessionError
+        The session cannot be read.
+    """
+    from endomeasure.features.boards import parse_board_spec
+    from endomeasure.io.session import IMAGE_SETS, edit_session, open_session
+
+    spec = parse_board_spec(board)
+    board_name = spec.canonical()
+    if image_set not in IMAGE_SETS:
+        raise BadInputError(
+            f"unknown image set {image_set!r}", hint=f"use one of {', '.join(IMAGE_SETS)}"
+        )
+    if int(workers) < 1:
+        raise BadInputError(f"--workers must be at least 1, not {workers}")
+    given_split = _parse_split(split)
+    session_path = Path(session_path)
+
+    stored_split, stored_size, stored_images, has_detections = None, None, {}, False
+    if session_path.exists():
+        with open_session(session_path) as session:
+            meta = session.metadata()
+            stored_split, stored_size = meta.split, meta.image_size
+            stored_images = {info.name: info.sha256 for info in session.images_info()}
+            has_detections = bool(session.detections())
+    if (
+        given_split is not None
+        and stored_split is not None
+        and given_split != stored_split
+        and has_detections
+    ):
+        raise BadInputError(
+            f"--split {given_split} differs from the session's split {stored_split}, which its "
+            "detections were made with",
+            path=str(session_path),
+            hint="use --split auto to keep the session's split, or start a new session",
+        )
+
+    files, results = _expand(paths)
+    progress = on_progress or (lambda stage, done, total: None)
+    counter = {"done": 0}
+
+    def tick(stage: str, total: int) -> Callable[[], None]:
+        counter["done"] = 0
+
+        def done() -> None:
+            counter["done"] += 1
+            progress(stage, counter["done"], total)
+
+        return done
+
+    want_split = given_split is None and stored_split is None
+    reads = _run(
+        _read_task,
+        [(path, image_set, want_split) for path in files],
+        int(workers),
+        tick("reading", len(files)),
+    )
+
+    # Usable images: decoded, of the session's size, not clashing with a stored image.
+    records, estimates, seen = [], [], {}
+    size = stored_size
+    for path, record, estimate, error in reads:
+        if record is None:
+            results.append(ImageResult(path=path, name="", status=STATUS_FAILED, error=error))
+            continue
+        name = record.name
+        image_size = (int(record.pixels.shape[1]), int(record.pixels.shape[0]))
+        problem = ""
+        if name in seen:
+            problem = f"two files give the image name {name!r} (the other is {seen[name]})"
+        elif name in stored_images and stored_images[name] != record.sha256:
+            problem = f"the session already holds a different image named {name!r}"
+        elif size is not None and image_size != tuple(size):
+            problem = (
+                f"image is {image_size[0]}x{image_size[1]} px but the session's images are "
+                f"{size[0]}x{size[1]} px"
+            )
+        if problem:
+            results.append(ImageResult(path=path, name=name, status=STATUS_FAILED, error=problem))
+            continue
+        seen[name] = path
+        size = image_size if size is None else size
+        records.append(record)
+        if estimate is not None:
+            estimates.append(estimate)
+
+    if given_split is not None:
+        split_used, split_source = given_split, "given"
+    elif stored_split is not None:
+        split_used, split_source = stored_split, "session"
+    elif estimates:
+        split_used, split_source = int(np.round(np.median(estimates))), "auto"
+    elif records:
+        raise BadInputError(
+            f"no dark band between the halves found in any of the {len(records)} images",
+            hint="give the first column of the right half with --split COLUMN",
+        )
+    else:
+        split_used, split_source = None, "auto"
+    if split_used is not None and size is not None and not 0 < split_used < size[0]:
+        raise BadInputError(
+            f"split column {split_used} is outside the images (width {size[0]} px)",
+            hint="give a column between 1 and the image width minus 1",
+        )
+
+    detections = _run(
+        _detect_task,
+        [(record.name, record.pixels, board_name, split_used, method) for record in records],
+        int(workers),
+        tick("detecting", len(records)),
+    )
+    by_name = dict(detections)
+    for record in records:
+        detection = by_name[record.name]
+        halves = {
+            h.half.label: HalfSummary(len(h.ids), h.quality.edge_width_px, h.failure or "")
+            for h in detection.halves
+        }
+        status = {2: STATUS_OK, 1: STATUS_ONE_HALF, 0: STATUS_FAILED}[detection.n_ok]
+        error = "" if detection.n_ok else "no board found in either half"
+        results.append(
+            ImageResult(
+                path=record.original_path,
+                name=record.name,
+                status=status,
+                error=error,
+                halves=halves,
+            )
+        )
+    order = {path: index for index, path in enumerate(files)}
+    results.sort(key=lambda r: order.get(r.path, -1))
+
+    report = DetectReport(
+        session=str(session_path),
+        board=board_name,
+        board_name=board_name,
+        image_set=image_set,
+        split=split_used,
+        split_source=split_source,
+        images=results,
+        stored=False,
+    )
+    if report.exit_code == 2:
+        return report
+
+    from endomeasure.io.session import Detection
+
+    stored = []
+    for record in records:
+        detection = by_name[record.name]
+        for half in detection.halves:
+            stored.append(
+                Detection(
+                    image=record.name,
+                    board=board_name,
+                    half=Half(half.half),
+                    ids=half.ids.astype(np.int32),
+                    pixels=half.pixels,
+                    quality=half.quality.edge_width_px,
+                    failure=half.failure or "",
+                    attrs={
+                        "quality_kind": QUALITY_KIND,
+                        "brightness": half.quality.brightness,
+                        "contrast": half.quality.contrast,
+                        "split": int(split_used),
+                        "method": method or "default",
+                    },
+                )
+            )
+    attrs, units = board_attrs(spec)
+    with edit_session(session_path, create=True) as writer:
+        meta = writer.metadata()
+        # Another command may have set these since the snapshot; a conflict is refused.
+        if meta.split is not None and meta.split != split_used:
+            raise BadInputError(
+                f"the session's split changed to {meta.split} while detecting with {split_used}",
+                path=str(session_path),
+                hint="run detect again",
+            )
+        if (
+            meta.image_size is not None
+            and size is not None
+            and tuple(meta.image_size) != tuple(size)
+        ):
+            raise BadInputError(
+                "the session's image size changed while detecting",
+                path=str(session_path),
+                hint="run detect again",
+            )
+        extra = {} if meta.split is not None else {"split_method": split_source}
+        writer.set_metadata(image_size=size, split=split_used, **extra)
+        writer.write_images(records)
+        writer.write_board(board_name, board_name, attrs, units)
+        writer.write_detections(stored)
+    return dataclasses.replace(report, stored=True)
