@@ -41,7 +41,7 @@ class Half(enum.IntEnum):
     RIGHT = 1
 
     @classmethod
-    def parse(cls, value: "Half | str | int") -> "Half":
+    def parse(cls, value: Half | str | int) -> Half:
         """Accept ``Half``, ``'left'``/``'right'`` (any case) or ``0``/``1``."""
         if isinstance(value, Half):
             return value

@@ -14,7 +14,7 @@ def test_rotation_matrix_matches_cv2_rodrigues(rng):
     rvecs = rng.normal(size=(200, 3)) * rng.uniform(0, 3.0, (200, 1))
     rvecs = np.concatenate([rvecs, [[0, 0, 0], [1e-10, 0, 0], [0, np.pi - 1e-7, 0]]])
     R = rotation_matrix(rvecs)
-    for r, m in zip(rvecs, R):
+    for r, m in zip(rvecs, R, strict=True):
         np.testing.assert_allclose(m, cv2.Rodrigues(r)[0], atol=ROT_TOL)
 
 

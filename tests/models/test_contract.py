@@ -20,7 +20,9 @@ def _half_grid(model, half, n_u=48, n_v=36):
     edge = model.config.split - 0.5
     lo, hi = (-0.5, edge) if half is Half.LEFT else (edge, width - 0.5)
     pad = 1e-6  # stay strictly inside the half's pixel rectangle
-    uu, vv = np.meshgrid(np.linspace(lo + pad, hi - pad, n_u), np.linspace(-0.5, height - 0.5 - pad, n_v))
+    uu, vv = np.meshgrid(
+        np.linspace(lo + pad, hi - pad, n_u), np.linspace(-0.5, height - 0.5 - pad, n_v)
+    )
     return np.stack([uu, vv], axis=-1)
 
 

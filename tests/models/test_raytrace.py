@@ -37,13 +37,16 @@ def fermat_pixels(model, points, half):
     front = "left" if half is Half.LEFT else "right"
     o1, B1 = _plane_basis(*model.face("rear"))
     o2, B2 = _plane_basis(*model.face(front))
+
     # start: where the straight line from the lens centre to P crosses each plane
     def cross(o, B, normal_d):
         normal, d = normal_d
         s = d / (points @ normal)
         return (s[:, None] * points - o) @ B
 
-    z = np.concatenate([cross(o1, B1, model.face("rear")), cross(o2, B2, model.face(front))], axis=1)
+    z = np.concatenate(
+        [cross(o1, B1, model.face("rear")), cross(o2, B2, model.face(front))], axis=1
+    )
     for _ in range(50):
         P1 = o1 + z[:, :2] @ B1.T
         P2 = o2 + z[:, 2:] @ B2.T

@@ -110,7 +110,9 @@ def refract(directions: np.ndarray, normal: np.ndarray, eta: float | np.ndarray)
     """
     d = np.asarray(directions, dtype=np.float64)
     m = np.asarray(normal, dtype=np.float64)
-    tx, ty, tz, tir = refract_xyz(d[..., 0], d[..., 1], d[..., 2], m[..., 0], m[..., 1], m[..., 2], eta)
+    tx, ty, tz, tir = refract_xyz(
+        d[..., 0], d[..., 1], d[..., 2], m[..., 0], m[..., 1], m[..., 2], eta
+    )
     status = np.where(tir, Status.TOTAL_INTERNAL_REFLECTION, Status.OK).astype(STATUS_DTYPE)
     return Refraction(np.stack([tx, ty, tz], axis=-1), status)
 

@@ -62,10 +62,13 @@ def rotation_vector(R: np.ndarray) -> np.ndarray:
     trace = np.trace(R, axis1=-2, axis2=-1)
     cos_t = np.clip((trace - 1.0) / 2.0, -1.0, 1.0)
     theta = np.arccos(cos_t)
-    axis_sin = np.stack(
-        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
-        axis=-1,
-    ) / 2.0  # = sin(t) * axis
+    axis_sin = (
+        np.stack(
+            [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+            axis=-1,
+        )
+        / 2.0
+    )  # = sin(t) * axis
     sin_t = np.sin(theta)
     near_pi = cos_t < -0.99
     small = theta < _SMALL_ANGLE

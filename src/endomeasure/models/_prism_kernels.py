@@ -69,7 +69,7 @@ def _trace(x, y, faces, n_glass):
 
 @njit(cache=True, nogil=True)
 def trace_rays(x, y, faces, n_glass, origins, directions, status):
-    """Trace many lens coordinates; fills ``origins (N,3)``, ``directions (N,3)``, ``status (N,)``."""
+    """Trace many lens coordinates into ``origins (N,3)``, ``directions (N,3)``, ``status (N,)``."""
     for i in range(x.shape[0]):
         ox, oy, oz, dx, dy, dz, st = _trace(x[i], y[i], faces, n_glass)
         origins[i, 0], origins[i, 1], origins[i, 2] = ox, oy, oz

@@ -75,7 +75,7 @@ class ModelConfig:
         }
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "ModelConfig":
+    def from_dict(cls, data: dict[str, Any]) -> ModelConfig:
         return cls(tuple(data["image_size"]), int(data["split"]), frozenset(data.get("fixed", ())))
 
 
@@ -111,7 +111,7 @@ class CameraModel(abc.ABC):
         object.__setattr__(self, "params", params)
         self._check()
 
-    def _check(self) -> None:
+    def _check(self) -> None:  # noqa: B027  (an optional hook, not abstract)
         """Subclass hook: validate parameter values (raise ValueError)."""
 
     # ----- named access -------------------------------------------------------------
@@ -134,18 +134,18 @@ class CameraModel(abc.ABC):
         raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
 
     def named_params(self) -> dict[str, float]:
-        return dict(zip(self.PARAM_NAMES, self.params.tolist()))
+        return dict(zip(self.PARAM_NAMES, self.params.tolist(), strict=True))
 
     @property
     def free_mask(self) -> np.ndarray:
         """Boolean mask of the parameters calibration estimates, shape (P,)."""
         return np.array([n not in self.config.fixed for n in self.PARAM_NAMES])
 
-    def with_params(self, params: np.ndarray) -> "CameraModel":
+    def with_params(self, params: np.ndarray) -> CameraModel:
         """A new model of the same kind and configuration with other parameters."""
         return dataclasses.replace(self, params=np.asarray(params, dtype=np.float64))
 
-    def with_config(self, **changes) -> "CameraModel":
+    def with_config(self, **changes) -> CameraModel:
         return dataclasses.replace(self, config=dataclasses.replace(self.config, **changes))
 
     # ----- plain-data round trip ----------------------------------------------------
@@ -162,13 +162,15 @@ class CameraModel(abc.ABC):
         return json.dumps(self.to_dict(), indent=2)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "CameraModel":
+    def from_dict(cls, data: dict[str, Any]) -> CameraModel:
         if data.get("model") != cls.NAME:
             raise ValueError(f"expected a {cls.NAME!r} model, got {data.get('model')!r}")
         names = tuple(data.get("param_names", cls.PARAM_NAMES))
         if names != cls.PARAM_NAMES:
             raise ValueError(f"parameter names of the {cls.NAME} model do not match this version")
-        return cls(np.asarray(data["params"], dtype=np.float64), ModelConfig.from_dict(data["config"]))
+        return cls(
+            np.asarray(data["params"], dtype=np.float64), ModelConfig.from_dict(data["config"])
+        )
 
     # ----- the two questions ----------------------------------------------------------
     def rays(self, pixels: np.ndarray, half: Half | str) -> Rays:
@@ -206,7 +208,9 @@ class CameraModel(abc.ABC):
         bad = status != Status.OK
         origins[bad] = np.nan
         directions[bad] = np.nan
-        return Rays(origins.reshape(*shape, 3), directions.reshape(*shape, 3), status.reshape(shape))
+        return Rays(
+            origins.reshape(*shape, 3), directions.reshape(*shape, 3), status.reshape(shape)
+        )
 
     def project(self, points: np.ndarray, half: Half | str) -> Projection:
         """Forward: the pixel where each 3D point lands in a half.

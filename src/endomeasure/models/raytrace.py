@@ -40,7 +40,7 @@ UNDISTORT_TOL_PX = 1e-10  # px
 
 
 def plane_normal(a: float, b: float) -> np.ndarray:
-    """Unit normal ``(tan a, tan b, 1) / norm`` of a face tilted by ``a`` about y and ``b`` about x."""
+    """Unit normal ``(tan a, tan b, 1) / norm`` of a face tilted by a about y and b about x."""
     n = np.array([np.tan(a), np.tan(b), 1.0])
     return n / np.linalg.norm(n)
 
@@ -144,7 +144,9 @@ class RaytraceModel(CameraModel):
         origins = np.empty((x.size, 3))
         directions = np.empty((x.size, 3))
         status = np.empty(x.size, dtype=STATUS_DTYPE)
-        _prism_kernels.trace_rays(x, y, self.faces_array(half), self.n_glass, origins, directions, status)
+        _prism_kernels.trace_rays(
+            x, y, self.faces_array(half), self.n_glass, origins, directions, status
+        )
         return PrismTrace(origins, directions, status)
 
     def _rays(self, pixels, half):
@@ -170,7 +172,7 @@ class RaytraceModel(CameraModel):
         status = np.where((status == Status.OK) & outside_lens, Status.OUTSIDE_HALF, status)
         return pixels, status.astype(STATUS_DTYPE)
 
-    def with_params(self, params: np.ndarray) -> "RaytraceModel":
+    def with_params(self, params: np.ndarray) -> RaytraceModel:
         """A new model with other parameters.
 
         When every parameter moves by less than ``_INHERIT_START_REL`` (relative, or
@@ -345,6 +347,7 @@ def aim_rays(
     status = np.empty(points.shape[0], dtype=STATUS_DTYPE)
     _prism_kernels.aim_rays(
         points, model.faces_array(half), model.n_glass, aim.centre, aim.exponents, aim.coeffs,
-        aim.lut, aim.lut_origin, aim.lut_step, AIM_TOL_PX / model.fx, AIM_TOL_PX / model.fy, AIM_MAX_ITER, xy, status,
+        aim.lut, aim.lut_origin, aim.lut_step,
+        AIM_TOL_PX / model.fx, AIM_TOL_PX / model.fy, AIM_MAX_ITER, xy, status,
     )  # fmt: skip
     return xy[:, 0], xy[:, 1], status

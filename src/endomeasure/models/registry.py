@@ -18,7 +18,9 @@ def model_class(name: str) -> type[CameraModel]:
     try:
         return MODELS[name]
     except KeyError:
-        raise KeyError(f"unknown camera model {name!r}; known: {', '.join(sorted(MODELS))}") from None
+        raise KeyError(
+            f"unknown camera model {name!r}; known: {', '.join(sorted(MODELS))}"
+        ) from None
 
 
 def model_from_dict(data: dict[str, Any]) -> CameraModel:
