@@ -127,3 +127,30 @@ def test_every_ok_projection_is_right(any_model, rng):
         assert miss.max() < 1e-7 * np.maximum(1.0, along).max()
         checked += ok.sum()
     assert checked > 500
+
+
+JACOBIAN_REL_TOL = 1e-6  # central differences with a 1e-4 mm step are good to ~1e-8 here
+
+
+@pytest.mark.parametrize("half", list(Half))
+def test_point_jacobian_matches_central_differences(any_model, half, rng):
+    n = 300
+    z = rng.uniform(8, 60, n)
+    sign = -1.0 if half is Half.LEFT else 1.0
+    points = np.stack([sign * rng.uniform(0, 0.6, n) * z, rng.uniform(-0.5, 0.5, n) * z, z], -1)
+    jac = any_model.project_jacobian(points, half)
+    plain = any_model.project(points, half)
+    np.testing.assert_array_equal(jac.status, plain.status)
+    ok = jac.status == Status.OK
+    assert ok.sum() > 200
+    np.testing.assert_allclose(jac.pixels[ok], plain.pixels[ok], atol=1e-12, rtol=0)
+    h = 1e-4
+    for axis in range(3):
+        step = np.zeros(3)
+        step[axis] = h
+        numeric = (any_model.project(points + step, half).pixels
+                   - any_model.project(points - step, half).pixels) / (2 * h)  # fmt: skip
+        scale = np.abs(jac.dq_dp[ok]).max()
+        np.testing.assert_allclose(jac.dq_dp[ok][:, :, axis], numeric[ok],
+                                   atol=JACOBIAN_REL_TOL * scale, rtol=0)  # fmt: skip
+    assert jac.dq_dp.shape == (n, 2, 3)

@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["distort", "undistort", "Undistortion", "max_monotonic_radius2"]
+__all__ = ["distort", "distort_jacobian", "undistort", "Undistortion", "max_monotonic_radius2"]
 
 UNDISTORT_MAX_ITER = 30
 
@@ -43,6 +43,18 @@ def distort(x: np.ndarray, y: np.ndarray, coeffs) -> tuple[np.ndarray, np.ndarra
     xd = x * radial + p1 * xy2 + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + p2 * xy2
     return xd, yd
+
+
+def distort_jacobian(x: np.ndarray, y: np.ndarray, coeffs) -> tuple[np.ndarray, ...]:
+    """Partial derivatives of :func:`distort`: ``(dxd/dx, dxd/dy, dyd/dx, dyd/dy)``, each (...)."""
+    k1, k2, p1, p2, k3 = coeffs
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+    cross = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
+    j11 = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+    j22 = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+    return j11, cross, cross, j22
 
 
 class Undistortion(NamedTuple):
@@ -89,14 +101,7 @@ def undistort(xd: np.ndarray, yd: np.ndarray, coeffs, tol: float) -> Undistortio
         done = np.maximum(np.abs(ex), np.abs(ey)) < tol
         idx = np.flatnonzero(active)
         converged.flat[idx[done]] = True
-        # Jacobian of distort at (xa, ya)
-        r2 = xa * xa + ya * ya
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
-        j11 = radial + 2.0 * xa * xa * dradial + 2.0 * p1 * ya + 6.0 * p2 * xa
-        j12 = 2.0 * xa * ya * dradial + 2.0 * p1 * xa + 2.0 * p2 * ya
-        j21 = 2.0 * xa * ya * dradial + 2.0 * p1 * xa + 2.0 * p2 * ya
-        j22 = radial + 2.0 * ya * ya * dradial + 6.0 * p1 * ya + 2.0 * p2 * xa
+        j11, j12, j21, j22 = distort_jacobian(xa, ya, coeffs)
         det = j11 * j22 - j12 * j21
         with np.errstate(divide="ignore", invalid="ignore"):
             sx = (j22 * ex - j12 * ey) / det

@@ -154,9 +154,33 @@ def _trilinear(lut, c, iq, iy, ix, tq, ty, tx):
 
 
 @njit(cache=True, nogil=True)
+def _lens_jacobian(x, y, faces, n_glass, px, py, pz, h, out):
+    """d(x, y)/dP at a converged aim, into ``out`` (2, 3).
+
+    The offset ``e(x, P) = (o + s d)_xy - P_xy`` with ``s = (P_z - o_z) / d_z`` vanishes at
+    the solution, so ``dx/dP = -(de/dx)^-1 de/dP`` with ``de/dP = [[-1, 0, tx], [0, -1, ty]]``
+    (``t = d_xy / d_z``, the ray's slope) and ``de/dx`` by central differences of the trace
+    (step ``h``, four traces).
+    """
+    ox, oy, oz, dx, dy, dz, st = _trace(x, y, faces, n_glass)
+    tx, ty = dx / dz, dy / dz
+    exp, eyp, s, st = _offset(x + h, y, faces, n_glass, px, py, pz)
+    exm, eym, s, st = _offset(x - h, y, faces, n_glass, px, py, pz)
+    a11, a21 = (exp - exm) / (2.0 * h), (eyp - eym) / (2.0 * h)
+    exp, eyp, s, st = _offset(x, y + h, faces, n_glass, px, py, pz)
+    exm, eym, s, st = _offset(x, y - h, faces, n_glass, px, py, pz)
+    a12, a22 = (exp - exm) / (2.0 * h), (eyp - eym) / (2.0 * h)
+    det = a11 * a22 - a12 * a21
+    i11, i12, i21, i22 = a22 / det, -a12 / det, -a21 / det, a11 / det
+    # dx/dP = (de/dx)^-1 [[1, 0, -tx], [0, 1, -ty]]
+    out[0, 0], out[0, 1], out[0, 2] = i11, i12, -(i11 * tx + i12 * ty)
+    out[1, 0], out[1, 1], out[1, 2] = i21, i22, -(i21 * tx + i22 * ty)
+
+
+@njit(cache=True, nogil=True)
 def aim_rays(
     points, faces, n_glass, centre, exponents, coeffs, lut, lut_origin, lut_step,
-    tol_x, tol_y, max_iter, xy, status,
+    tol_x, tol_y, max_iter, xy, status, dxy_dp,
 ):  # fmt: skip
     """Ray aiming for many points by Broyden's method (see ``raytrace.aim_rays``).
 
@@ -174,6 +198,9 @@ def aim_rays(
         Step tolerances in normalised lens units.
     xy : float64[N, 2] (output)
     status : uint8[N] (output)
+    dxy_dp : float64[N, 2, 3] or float64[0, 2, 3] (output)
+        Where given, the derivative of the lens coordinates with respect to the point,
+        by the implicit-function rule (see ``_lens_jacobian``).
     """
     n_feat = exponents.shape[0]
     top = 0
@@ -184,6 +211,7 @@ def aim_rays(
     pw_y = np.empty(top + 1)
     pw_q = np.empty(top + 1)
     use_lut = lut.shape[0] >= 2
+    want_jac = dxy_dp.shape[0] > 0
     for i in range(points.shape[0]):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         xy[i, 0] = _NAN
@@ -242,3 +270,7 @@ def aim_rays(
         if result == _OK:
             xy[i, 0] = x
             xy[i, 1] = y
+            if want_jac:
+                _lens_jacobian(x, y, faces, n_glass, px, py, pz, tol_x, dxy_dp[i])
+        elif want_jac:
+            dxy_dp[i, :, :] = _NAN

@@ -25,7 +25,7 @@ import numpy as np
 
 from endomeasure.conventions import STATUS_DTYPE, Half, Status, in_half
 
-__all__ = ["CameraModel", "ModelConfig", "Projection", "Rays"]
+__all__ = ["CameraModel", "ModelConfig", "Projection", "ProjectionJacobian", "Rays"]
 
 
 class Rays(NamedTuple):
@@ -37,6 +37,12 @@ class Rays(NamedTuple):
 class Projection(NamedTuple):
     pixels: np.ndarray  # (..., 2) px, NaN where status != OK
     status: np.ndarray  # (...,) uint8 Status
+
+
+class ProjectionJacobian(NamedTuple):
+    pixels: np.ndarray  # (..., 2) px
+    status: np.ndarray  # (...,) uint8 Status
+    dq_dp: np.ndarray  # (..., 2, 3) px/mm: d pixel / d point, NaN where status != OK
 
 
 @dataclasses.dataclass(frozen=True)
@@ -227,6 +233,20 @@ class CameraModel(abc.ABC):
             Pixels (px) and a status per point; every non-OK point is NaN, so a
             projection is either right or visibly absent.
         """
+        pixels, status, _ = self._forward(points, half, jacobian=False)
+        return Projection(pixels, status)
+
+    def project_jacobian(self, points: np.ndarray, half: Half | str) -> ProjectionJacobian:
+        """:meth:`project` and the derivative of each pixel with respect to its point.
+
+        Returns
+        -------
+        ProjectionJacobian
+            ``dq_dp`` has shape (..., 2, 3), px/mm, NaN where status is not OK.
+        """
+        return ProjectionJacobian(*self._forward(points, half, jacobian=True))
+
+    def _forward(self, points, half, jacobian: bool):
         half = Half.parse(half)
         points = np.asarray(points, dtype=np.float64)
         if points.shape[-1:] != (3,):
@@ -237,15 +257,40 @@ class CameraModel(abc.ABC):
         finite = np.all(np.isfinite(flat), axis=-1)
         status[~finite] = Status.INVALID_INPUT
         pixels = np.full((flat.shape[0], 2), np.nan)
+        dq_dp = np.full((flat.shape[0], 2, 3), np.nan) if jacobian else None
         todo = np.flatnonzero(finite)
-        if todo.size:
-            q, s = self._project(flat[todo], half)
-            pixels[todo], status[todo] = q, s
+        if todo.size == flat.shape[0]:
+            todo = slice(None)  # the common case: no gather/scatter copies
+        if flat[todo].size:
+            if jacobian:
+                pixels[todo], status[todo], dq_dp[todo] = self._project_jacobian(flat[todo], half)
+            else:
+                pixels[todo], status[todo] = self._project(flat[todo], half)
         ok = status == Status.OK
         inside = in_half(pixels, half, self.config.split, self.config.image_size)
         status[ok & ~inside] = Status.OUTSIDE_HALF
-        pixels[status != Status.OK] = np.nan
-        return Projection(pixels.reshape(*shape, 2), status.reshape(shape))
+        bad = status != Status.OK
+        pixels[bad] = np.nan
+        if jacobian:
+            dq_dp[bad] = np.nan
+            dq_dp = dq_dp.reshape(*shape, 2, 3)
+        return pixels.reshape(*shape, 2), status.reshape(shape), dq_dp
+
+    def _project_jacobian(self, points: np.ndarray, half: Half):
+        """Default: central differences of :meth:`_project`; models override it with
+        closed forms. Returns pixels (N, 2), status (N,), dq_dp (N, 2, 3)."""
+        pixels, status = self._project(points, half)
+        step = 1e-6 * np.maximum(1.0, np.abs(points))
+        dq_dp = np.empty((points.shape[0], 2, 3))
+        for axis in range(3):
+            offset = np.zeros_like(points)
+            offset[:, axis] = step[:, axis]
+            plus, st_p = self._project(points + offset, half)
+            minus, st_m = self._project(points - offset, half)
+            dq_dp[:, :, axis] = (plus - minus) / (2.0 * step[:, axis, None])
+            status = np.where((status == Status.OK) & ((st_p != 0) | (st_m != 0)),
+                              Status.NOT_CONVERGED, status)  # fmt: skip
+        return pixels, status, dq_dp
 
     @abc.abstractmethod
     def _rays(self, pixels: np.ndarray, half: Half) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -14,7 +14,12 @@ from typing import ClassVar
 import numpy as np
 
 from endomeasure.conventions import STATUS_DTYPE, Half, Status
-from endomeasure.geometry.distortion import distort, max_monotonic_radius2, undistort
+from endomeasure.geometry.distortion import (
+    distort,
+    distort_jacobian,
+    max_monotonic_radius2,
+    undistort,
+)
 from endomeasure.geometry.rotations import rotation_matrix
 from endomeasure.models.base import CameraModel
 
@@ -95,6 +100,23 @@ class PinholeModel(CameraModel):
 
     def _project(self, points, half):
         return project_pinhole(self._to_camera(points, half), self.intrinsics(half))
+
+    def _project_jacobian(self, points, half):
+        cam = self._to_camera(points, half)
+        pixels, status = project_pinhole(cam, self.intrinsics(half))
+        fx, fy, _, _, k1, k2, p1, p2, k3 = self.intrinsics(half)
+        inv_z = 1.0 / cam[:, 2]
+        x, y = cam[:, 0] * inv_z, cam[:, 1] * inv_z
+        j11, j12, j21, j22 = distort_jacobian(x, y, (k1, k2, p1, p2, k3))
+        # d(x, y)/d cam = [[1/z, 0, -x/z], [0, 1/z, -y/z]]
+        zero = np.zeros_like(x)
+        dn = np.stack([np.stack([inv_z, zero, -x * inv_z], -1),
+                       np.stack([zero, inv_z, -y * inv_z], -1)], -2)  # fmt: skip
+        D = np.stack([np.stack([j11, j12], -1), np.stack([j21, j22], -1)], -2)
+        dq_dp = np.array([fx, fy])[:, None] * (D @ dn)
+        if half is Half.RIGHT:
+            dq_dp = dq_dp @ self.pose_right_left()[0]
+        return pixels, status, dq_dp
 
     def _rays(self, pixels, half):
         fx, fy, cx, cy, k1, k2, p1, p2, k3 = self.intrinsics(half)

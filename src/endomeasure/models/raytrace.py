@@ -26,7 +26,12 @@ from typing import ClassVar, NamedTuple
 import numpy as np
 
 from endomeasure.conventions import STATUS_DTYPE, Half, Status
-from endomeasure.geometry.distortion import distort, max_monotonic_radius2, undistort
+from endomeasure.geometry.distortion import (
+    distort,
+    distort_jacobian,
+    max_monotonic_radius2,
+    undistort,
+)
 from endomeasure.models import _prism_kernels
 from endomeasure.models.base import CameraModel
 
@@ -167,10 +172,20 @@ class RaytraceModel(CameraModel):
     # ----- forward projection by ray aiming ---------------------------------------------
     def _project(self, points, half):
         x, y, status = aim_rays(self, points, half)
-        pixels = self._lens_to_pixels(x, y)
+        return self._lens_to_pixels(x, y), self._lens_status(x, y, status)
+
+    def _project_jacobian(self, points, half):
+        x, y, status, dxy_dp = aim_rays(self, points, half, jacobian=True)
+        j11, j12, j21, j22 = distort_jacobian(x, y, self._lens_coeffs())
+        D = np.stack([np.stack([j11, j12], -1), np.stack([j21, j22], -1)], -2)
+        dq_dp = np.array([self.fx, self.fy])[:, None] * (D @ dxy_dp)
+        return self._lens_to_pixels(x, y), self._lens_status(x, y, status), dq_dp
+
+    def _lens_status(self, x, y, status):
+        """Flag lens coordinates beyond the fold-back radius of the distortion polynomial."""
         outside_lens = (x * x + y * y) > max_monotonic_radius2(self.k1, self.k2, self.k3)
         status = np.where((status == Status.OK) & outside_lens, Status.OUTSIDE_HALF, status)
-        return pixels, status.astype(STATUS_DTYPE)
+        return status.astype(STATUS_DTYPE)
 
     def with_params(self, params: np.ndarray) -> RaytraceModel:
         """A new model with other parameters.
@@ -306,7 +321,11 @@ def _build_aim_table(model, half, poly: _AimMap, wx, wy) -> dict:
 
 
 def aim_rays(
-    model: RaytraceModel, points: np.ndarray, half: Half, aim: _AimMap | None = None
+    model: RaytraceModel,
+    points: np.ndarray,
+    half: Half,
+    aim: _AimMap | None = None,
+    jacobian: bool = False,
 ) -> tuple[np.ndarray, ...]:
     """Lens coordinates whose traced ray passes through each point (ray aiming).
 
@@ -318,6 +337,9 @@ def aim_rays(
     half : Half
     aim : _AimMap, optional
         Start data; the model's own by default.
+    jacobian : bool
+        Also return ``dxy_dp``, shape (N, 2, 3): the derivative of the lens coordinates
+        with respect to the point (implicit-function rule at the solution).
 
     Returns
     -------
@@ -345,9 +367,12 @@ def aim_rays(
     aim = model.aim_map(half) if aim is None else aim
     xy = np.empty((points.shape[0], 2))
     status = np.empty(points.shape[0], dtype=STATUS_DTYPE)
+    dxy_dp = np.empty((points.shape[0] if jacobian else 0, 2, 3))
     _prism_kernels.aim_rays(
         points, model.faces_array(half), model.n_glass, aim.centre, aim.exponents, aim.coeffs,
         aim.lut, aim.lut_origin, aim.lut_step,
-        AIM_TOL_PX / model.fx, AIM_TOL_PX / model.fy, AIM_MAX_ITER, xy, status,
+        AIM_TOL_PX / model.fx, AIM_TOL_PX / model.fy, AIM_MAX_ITER, xy, status, dxy_dp,
     )  # fmt: skip
+    if jacobian:
+        return xy[:, 0], xy[:, 1], status, dxy_dp
     return xy[:, 0], xy[:, 1], status
