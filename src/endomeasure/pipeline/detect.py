@@ -167,22 +167,36 @@ def _init_worker() -> None:
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
-def _read_task(path: str, image_set: str, want_split: bool):
-    """Read and decode one file; estimate its split when asked. Never raises."""
+def _read_task(
+    path: str,
+    image_set: str,
+    want_split: bool,
+    board: str | None = None,
+    split: int | None = None,
+    method: str | None = None,
+):
+    """Read and decode one file; estimate its split, or detect when the split is known.
+
+    Never raises for a bad file: returns ``(path, record, split_estimate, error,
+    detection)`` with ``error`` set instead.
+    """
+    from endomeasure.features.detect import detect_split_image
     from endomeasure.features.split import find_split
     from endomeasure.io.images import read_image_file
 
     try:
         record = read_image_file(path, image_set)
     except EndomeasureError as exc:
-        return path, None, None, exc.what
-    split = None
+        return path, None, None, exc.what, None
+    estimate = detection = None
     if want_split:
         try:
-            split = find_split(record.pixels).split
+            estimate = find_split(record.pixels).split
         except EndomeasureError:
-            split = None
-    return path, record, split, ""
+            estimate = None
+    if board is not None and split is not None and 0 < split < record.pixels.shape[1]:
+        detection = detect_split_image(record.pixels, board, split, method=method)
+    return path, record, estimate, "", detection
 
 
 def _detect_task(name: str, pixels: np.ndarray, board: str, split: int, method: str | None):
@@ -191,29 +205,45 @@ def _detect_task(name: str, pixels: np.ndarray, board: str, split: int, method: 
     return name, detect_split_image(pixels, board, split, method=method)
 
 
-def _run(
-    function: Callable,
-    argument_lists: Sequence[tuple],
-    workers: int,
-    on_done: Callable[[], None],
-) -> list:
-    """Apply ``function`` to each argument tuple, in order, in ``workers`` processes."""
-    if workers <= 1 or len(argument_lists) <= 1:
-        _init_worker()
-        results = []
-        for arguments in argument_lists:
-            results.append(function(*arguments))
-            on_done()
-        return results
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+class _Runner:
+    """Runs tasks in this process (one worker) or in one process pool reused for all."""
 
-    results: list = [None] * len(argument_lists)
-    with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker) as pool:
-        futures = {pool.submit(function, *args): index for index, args in enumerate(argument_lists)}
+    def __init__(self, workers: int):
+        self.workers = workers
+        self.pool = None
+
+    def __enter__(self) -> _Runner:
+        _init_worker()
+        if self.workers > 1:
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_init_worker)
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(cancel_futures=True)
+
+    def run(
+        self, function: Callable, argument_lists: Sequence[tuple], on_done: Callable[[], None]
+    ) -> list:
+        """``function(*args)`` for each argument tuple, results in order."""
+        if self.pool is None or len(argument_lists) <= 1:
+            results = []
+            for arguments in argument_lists:
+                results.append(function(*arguments))
+                on_done()
+            return results
+        from concurrent.futures import as_completed
+
+        results: list = [None] * len(argument_lists)
+        futures = {
+            self.pool.submit(function, *args): index for index, args in enumerate(argument_lists)
+        }
         for future in as_completed(futures):
             results[futures[future]] = future.result()
             on_done()
-    return results
+        return results
 
 
 # ----------------------------------------------------------------------- the command
@@ -247,6 +277,58 @@ def _parse_split(split: str | int) -> int | None:
             f"--split must be 'auto' or a column number, not {split!r}",
             hint="e.g. --split auto or --split 640",
         ) from None
+
+
+def _check_reads(reads, stored_size, stored_images, results):
+    """Keep decoded images of the session's size that do not clash with stored ones.
+
+    Appends a failed :class:`ImageResult` to ``results`` for every other file; returns the
+    usable records and the detections already made for them (by image name).
+    """
+    records, detections, seen = [], {}, {}
+    size = stored_size
+    for path, record, _estimate, error, detection in reads:
+        if record is None:
+            results.append(ImageResult(path=path, name="", status=STATUS_FAILED, error=error))
+            continue
+        name = record.name
+        image_size = (int(record.pixels.shape[1]), int(record.pixels.shape[0]))
+        problem = ""
+        if name in seen:
+            problem = f"two files give the image name {name!r} (the other is {seen[name]})"
+        elif name in stored_images and stored_images[name] != record.sha256:
+            problem = f"the session already holds a different image named {name!r}"
+        elif size is not None and image_size != tuple(size):
+            problem = (
+                f"image is {image_size[0]}x{image_size[1]} px but the session's images are "
+                f"{size[0]}x{size[1]} px"
+            )
+        if problem:
+            results.append(ImageResult(path=path, name=name, status=STATUS_FAILED, error=problem))
+            continue
+        seen[name] = path
+        size = image_size if size is None else size
+        records.append(record)
+        if detection is not None:
+            detections[name] = detection
+    return records, detections
+
+
+def _choose_split(given_split, stored_split, estimates, records):
+    """The split to use and where it came from."""
+    if given_split is not None:
+        return given_split, "given"
+    if stored_split is not None:
+        return stored_split, "session"
+    estimates = [e for e in estimates if e is not None]
+    if estimates:
+        return int(np.round(np.median(estimates))), "auto"
+    if records:
+        raise BadInputError(
+            f"no dark band between the halves found in any of the {len(records)} images",
+            hint="give the first column of the right half with --split COLUMN",
+        )
+    return None, "auto"
 
 
 def detect_images(
@@ -343,67 +425,35 @@ def detect_images(
         return done
 
     want_split = given_split is None and stored_split is None
-    reads = _run(
-        _read_task,
-        [(path, image_set, want_split) for path in files],
-        int(workers),
-        tick("reading", len(files)),
-    )
-
-    # Usable images: decoded, of the session's size, not clashing with a stored image.
-    records, estimates, seen = [], [], {}
-    size = stored_size
-    for path, record, estimate, error in reads:
-        if record is None:
-            results.append(ImageResult(path=path, name="", status=STATUS_FAILED, error=error))
-            continue
-        name = record.name
-        image_size = (int(record.pixels.shape[1]), int(record.pixels.shape[0]))
-        problem = ""
-        if name in seen:
-            problem = f"two files give the image name {name!r} (the other is {seen[name]})"
-        elif name in stored_images and stored_images[name] != record.sha256:
-            problem = f"the session already holds a different image named {name!r}"
-        elif size is not None and image_size != tuple(size):
-            problem = (
-                f"image is {image_size[0]}x{image_size[1]} px but the session's images are "
-                f"{size[0]}x{size[1]} px"
+    known_split = given_split if given_split is not None else stored_split
+    with _Runner(int(workers)) as runner:
+        # With the split known, each worker reads and detects in one go.
+        reads = runner.run(
+            _read_task,
+            [(path, image_set, want_split, board_name, known_split, method) for path in files],
+            tick("reading" if want_split else "detecting", len(files)),
+        )
+        records, detections = _check_reads(reads, stored_size, stored_images, results)
+        split_used, split_source = _choose_split(
+            given_split, stored_split, [r[2] for r in reads if r[1] is not None], records
+        )
+        size = stored_size or (
+            (int(records[0].pixels.shape[1]), int(records[0].pixels.shape[0])) if records else None
+        )
+        if split_used is not None and size is not None and not 0 < split_used < size[0]:
+            raise BadInputError(
+                f"split column {split_used} is outside the images (width {size[0]} px)",
+                hint="give a column between 1 and the image width minus 1",
             )
-        if problem:
-            results.append(ImageResult(path=path, name=name, status=STATUS_FAILED, error=problem))
-            continue
-        seen[name] = path
-        size = image_size if size is None else size
-        records.append(record)
-        if estimate is not None:
-            estimates.append(estimate)
-
-    if given_split is not None:
-        split_used, split_source = given_split, "given"
-    elif stored_split is not None:
-        split_used, split_source = stored_split, "session"
-    elif estimates:
-        split_used, split_source = int(np.round(np.median(estimates))), "auto"
-    elif records:
-        raise BadInputError(
-            f"no dark band between the halves found in any of the {len(records)} images",
-            hint="give the first column of the right half with --split COLUMN",
+        missing = [record for record in records if record.name not in detections]
+        found = runner.run(
+            _detect_task,
+            [(r.name, r.pixels, board_name, split_used, method) for r in missing],
+            tick("detecting", len(missing)),
         )
-    else:
-        split_used, split_source = None, "auto"
-    if split_used is not None and size is not None and not 0 < split_used < size[0]:
-        raise BadInputError(
-            f"split column {split_used} is outside the images (width {size[0]} px)",
-            hint="give a column between 1 and the image width minus 1",
-        )
+        detections.update(dict(found))
 
-    detections = _run(
-        _detect_task,
-        [(record.name, record.pixels, board_name, split_used, method) for record in records],
-        int(workers),
-        tick("detecting", len(records)),
-    )
-    by_name = dict(detections)
+    by_name = detections
     for record in records:
         detection = by_name[record.name]
         halves = {
