@@ -1,3 +1,4 @@
+# ruff: noqa: I001  (endomeasure is imported before numpy on purpose, see below)
 """Shared test fixtures and settings.
 
 - ``rng``: a seeded NumPy generator per test (never a global seed).
@@ -12,7 +13,6 @@ from __future__ import annotations
 import os
 
 import endomeasure  # noqa: F401  (first: it pins BLAS to one thread before numpy loads)
-
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
