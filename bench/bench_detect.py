@@ -12,8 +12,9 @@ Usage::
         Images per second of `detect` (the pipeline: read, detect both halves, store)
         with 1 and 2 workers, against a bare loop of the same OpenCV calls (imread,
         findChessboardCornersSBWithMeta and cornerSubPix per half) on the same images,
-        in the same run. Without --images: sample_sessions/calib when it exists, else
-        12 analytic renders. Writes the "detect" section of docs/benchmarks.md.
+        in the same run. Without --images: 12 analytic renders (for the sample set:
+        --images sample_sessions/calib --board SPEC). Writes the "detect" section of
+        docs/benchmarks.md.
     python bench/bench_detect.py
         Both, with small sizes (what `make bench` runs).
 """
@@ -189,18 +190,13 @@ def throughput(files: list[str], board: str, split: int, repeats: int = 3) -> di
 
 
 def _default_images(board_default: str, count: int = 12) -> tuple[list[str], str, int]:
-    """sample_sessions/calib if present, else analytic renders written to a temp dir."""
+    """Analytic renders written to a temp dir (pass --images for a real set)."""
     import tempfile
 
     import cv2
 
     from endomeasure.features.synthetic import render_split_image as render
 
-    calib = Path(__file__).resolve().parents[1] / "sample_sessions" / "calib"
-    if calib.is_dir():
-        files = sorted(str(p) for p in calib.iterdir() if p.suffix.lower() == ".png")
-        if files:
-            return files, "", -1
     folder = Path(tempfile.mkdtemp(prefix="bench-detect-"))
     rng = np.random.default_rng(5)
     spec = parse_board_spec(board_default)
@@ -247,8 +243,6 @@ def main(argv: list[str] | None = None) -> int:
                 split = find_split(cv2.imread(files[0], cv2.IMREAD_GRAYSCALE)).split
         else:
             files, board, split = _default_images(args.board)
-            if split < 0:
-                raise SystemExit("sample_sessions/calib found: give --board and --split")
         rates = throughput(files, board, split)
         body = (
             "## detect throughput\n\n"
