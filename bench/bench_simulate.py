@@ -1,0 +1,211 @@
+"""Simulator benchmarks: render time, and the accuracy of the rendered truth.
+
+``bench/bench_simulate.py``
+    Render time of one image at the default resolution and supersampling (one core),
+    against two peers measured in the same run: tracing the preset's ray bundle (done
+    once per preset) and ``cv2.findChessboardCornersSB`` on the rendered image. Writes
+    the ``simulate-render`` section of docs/benchmarks.md.
+
+``bench/bench_simulate.py --accuracy [--noisy DIR] [--seed N]``
+    The acceptance figures of the renderer: ``cv2.findChessboardCornersSB`` (no flags)
+    on each half of every calib and test image, against the true pixels, RMS per set,
+    for noisy renders (``DIR``, e.g. ``sample_sessions``, or rendered now) and for
+    noise-free renders of the same poses; also the project's default detector
+    (``features.chessboard``) for comparison. Writes the ``simulator-accuracy`` section
+    of docs/simulator.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # one core, as the target says
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import ROOT, machine, median_time, replace_section, write_section  # noqa: E402
+
+
+def bench_render() -> None:
+    import cv2
+
+    cv2.setNumThreads(1)
+    from endomeasure.simulate.optics import Region, clear_ray_cache, trace_region
+    from endomeasure.simulate.preset import load_preset
+    from endomeasure.simulate.render import render
+    from endomeasure.simulate.scenes import plan_set
+
+    preset = load_preset("default")
+    shot = plan_set(preset, "calib", 0)[14]
+    width, height = preset.image_size
+    region = Region.full(preset.image_size)
+    clear_ray_cache()
+    start = time.perf_counter()
+    trace_region(preset.truth_model, region, preset.supersampling, preset.chunk_rays)
+    t_trace = time.perf_counter() - start
+    rng = np.random.default_rng(0)
+    t_render = median_time(lambda: render(preset, shot.target, rng=rng), runs=5)
+    image = render(preset, shot.target, rng=rng).image
+    half = np.ascontiguousarray(image[:, : preset.split])
+    t_sb = median_time(
+        lambda: cv2.findChessboardCornersSB(half, (shot.target.cols, shot.target.rows)), runs=5
+    )
+    n = preset.supersampling
+    body = "\n".join(
+        [
+            "## simulate: render time of one image",
+            "",
+            f"{width} x {height} px, {n} x {n} = {n * n} rays per pixel, one core, {machine()}; "
+            "median of 5 after a warm-up (`bench/bench_simulate.py`).",
+            "",
+            "| step | time | ratio to render |",
+            "|---|---:|---:|",
+            f"| render one image (rays cached) | {t_render:.2f} s | 1.00 |",
+            f"| trace the ray bundle (once per preset) | {t_trace:.2f} s "
+            f"| {t_trace / t_render:.2f} |",
+            f"| cv2.findChessboardCornersSB on one half | {t_sb:.3f} s | {t_sb / t_render:.3f} |",
+            "",
+            f"Target: under 2 s per image: {'met' if t_render < 2.0 else 'NOT met'}.",
+        ]
+    )
+    write_section("simulate-render", body)
+
+
+def _half_errors(image: np.ndarray, truth: dict, split: int, method: str):
+    """Per half: detected - true pixel per corner (by truth id), or None if not found."""
+    import cv2
+
+    from endomeasure.features.boards import parse_board_spec
+    from endomeasure.features.chessboard import canonical_grid, detect_chessboard
+
+    spec = parse_board_spec(truth["board_spec"])
+    out = {}
+    for half, (lo, hi) in (("left", (0, split)), ("right", (split, image.shape[1]))):
+        gray = np.ascontiguousarray(image[:, lo:hi])
+        if method == "sb":
+            found, corners = cv2.findChessboardCornersSB(gray, (spec.cols, spec.rows))
+            if not found:
+                out[half] = None
+                continue
+            grid, _ = canonical_grid(corners.reshape(spec.rows, spec.cols, 2))
+            pixels = grid.reshape(-1, 2)
+        else:
+            result = detect_chessboard(gray, spec)
+            if not result.ok:
+                out[half] = None
+                continue
+            pixels = result.pixels
+        pixels = pixels + [lo, 0]
+        true = np.array(
+            [p if p is not None else [np.nan, np.nan] for p in truth["corners"]["pixels"][half]]
+        )
+        err = pixels - true
+        # the canonical order must be the truth order: the nearest truth corner has the same id
+        nearest = np.nanargmin(np.linalg.norm(pixels[:, None] - true[None], axis=-1), axis=1)
+        out[half] = (err, int((nearest != np.arange(len(nearest))).sum()))
+    return out
+
+
+def _accuracy_of(folder: Path, sets: list[str], method: str) -> dict[str, dict]:
+    import cv2
+
+    manifest = json.loads((folder / "simulation.json").read_text())
+    split = int(manifest["split"])
+    stats = {}
+    for name in sets:
+        errors, halves, found, id_mismatch = [], 0, 0, 0
+        for entry in manifest["sets"][name]["images"]:
+            truth = json.loads((folder / entry["truth"]).read_text())
+            image = cv2.imread(str(folder / entry["image"]), cv2.IMREAD_GRAYSCALE)
+            for half, res in _half_errors(image, truth, split, method).items():
+                if not truth["board_fully_visible"][half]:
+                    continue  # only halves that contain the whole board
+                halves += 1
+                if res is None:
+                    continue
+                found += 1
+                errors.append(res[0])
+                id_mismatch += res[1]
+        e = np.concatenate(errors) if errors else np.zeros((0, 2))
+        stats[name] = {
+            "halves": halves,
+            "found": found,
+            "corners": len(e),
+            "rms": float(np.sqrt(np.nanmean(np.sum(e**2, axis=1)))) if len(e) else float("nan"),
+            "mean": np.nanmean(e, axis=0) if len(e) else np.array([np.nan, np.nan]),
+            "p95": float(np.nanpercentile(np.linalg.norm(e, axis=1), 95))
+            if len(e)
+            else float("nan"),
+            "id_mismatch": id_mismatch,
+        }
+    return stats
+
+
+def bench_accuracy(noisy_dir: str | None, seed: int) -> None:
+    from endomeasure.pipeline.simulate import simulate
+
+    sets = ["calib", "test"]
+    with tempfile.TemporaryDirectory() as tmp:
+        if noisy_dir is None:
+            noisy = Path(tmp) / "noisy"
+            simulate(noisy, "default", sets, seed=seed)
+        else:
+            noisy = Path(noisy_dir)
+            seed = int(json.loads((noisy / "simulation.json").read_text())["seed"])
+        clean = Path(tmp) / "clean"
+        simulate(clean, "default", sets, seed=seed, noise_free=True)
+        rows = []
+        for method, label in (
+            ("sb", "cv2.findChessboardCornersSB"),
+            ("default", "features default (SB + cornerSubPix)"),
+        ):
+            for kind, folder, bar in (("noisy", noisy, 0.1), ("noise-free", clean, 0.05)):
+                for name, s in _accuracy_of(folder, sets, method).items():
+                    verdict = "met" if s["rms"] <= bar else "**missed**"
+                    rows.append(
+                        f"| {label} | {name} | {kind} | {s['found']}/{s['halves']} "
+                        f"| {s['corners']} | {s['rms']:.3f} "
+                        f"| {s['mean'][0]:+.3f}, {s['mean'][1]:+.3f} | {s['p95']:.3f} "
+                        f"| {s['id_mismatch']} | {bar} {verdict} |"
+                    )
+    body = "\n".join(
+        [
+            f"Seed {seed}, default preset; `.venv/bin/python bench/bench_simulate.py --accuracy"
+            + (f" --noisy {noisy_dir}" if noisy_dir else "")
+            + "`. Halves counted: those whose "
+            "truth says the whole board is visible; errors are detected minus true pixel by "
+            "corner id (the detector's canonical order), px.",
+            "",
+            "| detector | set | render | halves found | corners | RMS px | mean du, dv px "
+            "| 95 % px | id mismatches | bar |",
+            "|---|---|---|---:|---:|---:|---:|---:|---:|---|",
+            *rows,
+        ]
+    )
+    doc = ROOT / "docs" / "simulator.md"
+    text = doc.read_text() if doc.exists() else "# Simulator\n"
+    doc.write_text(replace_section(text, "simulator-accuracy", body))
+    print(body)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--accuracy", action="store_true", help="measure the truth accuracy")
+    parser.add_argument("--noisy", help="folder of a noisy simulate run (default: render now)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    if args.accuracy:
+        bench_accuracy(args.noisy, args.seed)
+    else:
+        bench_render()
+
+
+if __name__ == "__main__":
+    main()

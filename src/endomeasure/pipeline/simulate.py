@@ -1,0 +1,241 @@
+"""``endomeasure simulate``: render image sets with exact ground truth (the digital twin).
+
+Output layout (documented in ``docs/simulator.md``)::
+
+    OUT_DIR/simulation.json          manifest: preset, truth optics, seed, image list
+    OUT_DIR/calib/calib_000.png      8-bit grey image, both halves side by side
+    OUT_DIR/calib/calib_000.json     its ground truth
+    OUT_DIR/test/...  OUT_DIR/scene/...
+
+Deterministic for a seed: poses come from a generator per set, sensor noise from a
+generator per image, both derived from the seed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import zlib
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from endomeasure import __version__
+from endomeasure.errors import BadInputError
+
+__all__ = ["SimulationReport", "simulate", "parse_sets", "MANIFEST_NAME", "MANIFEST_FORMAT"]
+
+MANIFEST_NAME = "simulation.json"
+MANIFEST_FORMAT = "endomeasure-simulation"
+MANIFEST_VERSION = 1
+_PNG_COMPRESSION = 9  # smallest files; PNG is lossless, so this changes nothing but size
+
+
+@dataclass(frozen=True)
+class SimulationReport:
+    """What :func:`simulate` wrote.
+
+    Attributes
+    ----------
+    out_dir : str
+    preset : str
+    seed : int
+    noise_free : bool
+    split : int
+        First column of the right half in the rendered images.
+    sets : dict
+        Per set: ``images`` (count), ``fully_visible`` (boards whole in both halves),
+        ``files`` (relative paths of the images).
+    seconds : float
+        Wall time, s.
+    """
+
+    out_dir: str
+    preset: str
+    seed: int
+    noise_free: bool
+    split: int
+    sets: dict[str, dict[str, Any]] = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def parse_sets(text: str | Iterable[str]) -> list[str]:
+    """``'calib,test'`` -> ``['calib', 'test']``, validated, in canonical order."""
+    from endomeasure.simulate.scenes import SET_NAMES
+
+    items = text.split(",") if isinstance(text, str) else list(text)
+    names = [s.strip().lower() for s in items if s.strip()]
+    unknown = sorted(set(names) - set(SET_NAMES))
+    if unknown or not names:
+        raise BadInputError(
+            f"unknown image set(s) {', '.join(unknown) or '(none given)'}",
+            hint=f"use a comma-separated list of {', '.join(SET_NAMES)}",
+        )
+    return [s for s in SET_NAMES if s in names]
+
+
+def _noise_rng(seed: int, set_name: str, index: int):
+    import numpy as np
+
+    return np.random.default_rng([int(seed), zlib.crc32(set_name.encode()), int(index), 0x6E6F6973])
+
+
+def _remove_stale(folder: Path, set_name: str) -> None:
+    """Delete earlier renders of a set, so a smaller run leaves no foreign images behind."""
+    for path in folder.glob(f"{set_name}_*"):
+        if path.suffix in (".png", ".json") and path.is_file():
+            path.unlink()
+
+
+def simulate(
+    out_dir: str | os.PathLike,
+    preset: str | os.PathLike = "default",
+    sets: str | Iterable[str] = "calib,test,scene",
+    seed: int = 0,
+    noise_free: bool = False,
+    on_progress: Callable[[int, int, str], None] | None = None,
+) -> SimulationReport:
+    """Render the requested image sets of a preset with their ground truth.
+
+    Parameters
+    ----------
+    out_dir : path-like
+        Created if missing; earlier renders of the same sets in it are replaced.
+    preset : str or path-like
+        A built-in preset name or a preset JSON file.
+    sets : str or iterable of str
+        Any of ``calib``, ``test``, ``scene``.
+    seed : int
+        Non-negative; the same seed gives the same images, byte for byte.
+    noise_free : bool
+        Render without shot and read noise (still 8-bit).
+    on_progress : callable(done, total, name), optional
+        Called after each image is written.
+
+    Returns
+    -------
+    SimulationReport
+
+    Raises
+    ------
+    BadInputError
+        Unknown preset or set, negative seed, or an output folder that cannot be written.
+    """
+    import cv2
+
+    from endomeasure.simulate.preset import load_preset
+    from endomeasure.simulate.render import render
+    from endomeasure.simulate.scenes import plan_set
+    from endomeasure.simulate.truth import image_truth
+
+    start = time.perf_counter()
+    if int(seed) < 0:
+        raise BadInputError(f"seed must be a non-negative integer, not {seed}")
+    set_names = parse_sets(sets)
+    loaded = load_preset(preset)
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise BadInputError("the output path exists and is not a folder", path=str(out))
+    try:
+        plans = {name: plan_set(loaded, name, int(seed)) for name in set_names}
+    except ValueError as exc:
+        raise BadInputError(
+            f"cannot plan the image sets of preset {loaded.name!r}: {exc}", path=loaded.source
+        ) from None
+    total = sum(len(p) for p in plans.values())
+    done = 0
+    manifest_sets: dict[str, Any] = {}
+    report_sets: dict[str, dict[str, Any]] = {}
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for name, shots in plans.items():
+            folder = out / name
+            folder.mkdir(exist_ok=True)
+            _remove_stale(folder, name)
+            entries = []
+            fully = 0
+            for shot in shots:
+                rng = None if noise_free else _noise_rng(seed, name, shot.index)
+                result = render(loaded, shot.target, rng=rng, noise_free=noise_free)
+                png = folder / f"{shot.name}.png"
+                if not cv2.imwrite(
+                    str(png), result.image, [cv2.IMWRITE_PNG_COMPRESSION, _PNG_COMPRESSION]
+                ):
+                    raise OSError(f"could not write {png}")
+                info = {
+                    "noise_free": bool(noise_free),
+                    "seed": int(seed),
+                    "exposure": result.exposure,
+                    "supersampling": f"{loaded.supersampling}x{loaded.supersampling}",
+                }
+                truth = image_truth(loaded, shot, png.name, info)
+                (folder / f"{shot.name}.json").write_text(json.dumps(truth, indent=1) + "\n")
+                entry = {"image": f"{name}/{png.name}", "truth": f"{name}/{shot.name}.json"}
+                if "board_spec" in truth:
+                    entry["board_spec"] = truth["board_spec"]
+                    entry["distance_mm"] = round(truth["distance_mm"], 4)
+                    whole = all(truth["board_fully_visible"].values())
+                    entry["board_fully_visible"] = whole
+                    fully += whole
+                entries.append(entry)
+                done += 1
+                if on_progress is not None:
+                    on_progress(done, total, shot.name)
+            manifest_sets[name] = {"protocol": loaded.sets[name], "images": entries}
+            report_sets[name] = {
+                "images": len(entries),
+                "fully_visible": fully if name != "scene" else None,
+                "files": [e["image"] for e in entries],
+            }
+        manifest = {
+            "format": MANIFEST_FORMAT,
+            "version": MANIFEST_VERSION,
+            "created_by": f"endomeasure {__version__}",
+            "seed": int(seed),
+            "noise_free": bool(noise_free),
+            "preset": {"name": loaded.name, "source": loaded.source, "sha256": loaded.digest},
+            "image_size": list(loaded.image_size),
+            "split": loaded.split,
+            "truth_model": loaded.truth_model.to_dict(),
+            "sets": manifest_sets,
+            "preset_data": loaded.to_dict(),
+        }
+        # keep the sets of earlier runs that this run did not render
+        manifest_path = out / MANIFEST_NAME
+        if manifest_path.is_file():
+            try:
+                old = json.loads(manifest_path.read_text())
+                same_run = (
+                    old.get("preset", {}).get("sha256") == loaded.digest
+                    and old.get("seed") == seed
+                    and old.get("noise_free") == bool(noise_free)
+                )
+                if same_run:
+                    for name, value in old.get("sets", {}).items():
+                        manifest["sets"].setdefault(name, value)
+            except (ValueError, AttributeError):
+                pass
+        manifest["sets"] = {k: manifest["sets"][k] for k in sorted(manifest["sets"])}
+        tmp = manifest_path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(manifest, indent=1) + "\n")
+        tmp.replace(manifest_path)
+    except OSError as exc:
+        raise BadInputError(
+            f"cannot write the simulated images ({exc.strerror or exc})",
+            path=str(out),
+            hint="choose a writable output folder",
+        ) from None
+    return SimulationReport(
+        out_dir=str(out),
+        preset=loaded.name,
+        seed=int(seed),
+        noise_free=bool(noise_free),
+        split=loaded.split,
+        sets=report_sets,
+        seconds=time.perf_counter() - start,
+    )

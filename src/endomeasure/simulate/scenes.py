@@ -1,0 +1,243 @@
+"""The image sets: where the targets are for each simulated image (SPEC sections 2, 9).
+
+- ``calib``: three flat chessboards (0.5, 1 and 2 mm squares) at 10-45 mm, tilted up
+  to about 30 degrees about the horizontal and vertical axes, seen in both halves; a
+  few images deliberately leave part of the board outside one half, as happens in
+  practice (and exercises the detector's per-half failure path).
+- ``test``: the 1 mm board perpendicular to the axis from 12 to 27 mm and the 2 mm
+  board from 22 to 40 mm in 1 mm steps (the paper's protocol), with the small residual
+  tilt and offset of a real stage.
+- ``scene``: a textured metal cylinder with small marks at known positions.
+
+Poses are drawn from a generator seeded by the run seed and the set name, so a set is
+reproducible on its own. Rotations compose as ``R = Rz(roll) Ry(tilt_y) Rx(tilt_x)``
+(roll stays small so that the detector's canonical corner order equals the truth ids).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import zlib
+from typing import Any
+
+import numpy as np
+
+from endomeasure.conventions import Half, Status
+from endomeasure.geometry.rotations import rotation_matrix
+from endomeasure.simulate.optics import apex_columns
+from endomeasure.simulate.preset import Preset
+from endomeasure.simulate.targets import Chessboard, MetalCylinder, target_from_preset
+
+__all__ = ["Shot", "SET_NAMES", "plan_set", "visibility", "set_rng"]
+
+SET_NAMES = ("calib", "test", "scene")
+
+BORDER_CLEARANCE_PX = 2.0
+"""A board counts as fully visible when its checker outline stays this far inside the
+image border, ..."""
+APEX_CLEARANCE_SIGMAS = 2.5
+"""... and this many apex-band sigmas away from the apex image (where the band has
+darkened the image by less than 4 %, so the outer squares are intact)."""
+_MAX_TRIES = 400
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Shot:
+    """One image to render: a posed target and where it came from."""
+
+    set_name: str
+    index: int
+    target: Chessboard | MetalCylinder
+    tags: tuple[str, ...] = ()
+
+    @property
+    def name(self) -> str:
+        return f"{self.set_name}_{self.index:03d}"
+
+
+def set_rng(seed: int, set_name: str, purpose: str = "poses") -> np.random.Generator:
+    """The generator of one set and purpose: independent of the other sets."""
+    return np.random.default_rng(
+        [int(seed), zlib.crc32(set_name.encode()), zlib.crc32(purpose.encode())]
+    )
+
+
+def _rotation(tilt_x: float, tilt_y: float, roll: float) -> np.ndarray:
+    return (
+        rotation_matrix(np.array([0.0, 0.0, roll]))
+        @ rotation_matrix(np.array([0.0, tilt_y, 0.0]))
+        @ rotation_matrix(np.array([tilt_x, 0.0, 0.0]))
+    )
+
+
+def _place_board(board: Chessboard, R: np.ndarray, centre: np.ndarray) -> Chessboard:
+    return board.with_pose(R, centre - R @ board.centre_board)
+
+
+class _Clearance:
+    """Checks whether projected points keep clear of the image border and the apex band."""
+
+    def __init__(self, preset: Preset):
+        self.preset = preset
+        self.model = preset.truth_model
+        height = preset.image_size[1]
+        self.rows = np.linspace(0.0, height - 1.0, 9)
+        self.apex = apex_columns(self.model, self.rows)
+        self.apex_margin = APEX_CLEARANCE_SIGMAS * preset.apex_band_sigma_px
+
+    def inside(self, points: np.ndarray, half: Half) -> tuple[np.ndarray, np.ndarray]:
+        """(projected OK, OK and clear of border and band) per point."""
+        proj = self.model.project(points, half)
+        ok = proj.status == Status.OK
+        q = proj.pixels
+        width, height = self.preset.image_size
+        m = BORDER_CLEARANCE_PX
+        clear = ok.copy()
+        with np.errstate(invalid="ignore"):
+            clear &= (q[:, 0] >= -0.5 + m) & (q[:, 0] <= width - 0.5 - m)
+            clear &= (q[:, 1] >= -0.5 + m) & (q[:, 1] <= height - 0.5 - m)
+            u_apex = np.interp(q[:, 1], self.rows, self.apex)
+            if half is Half.LEFT:
+                clear &= q[:, 0] <= u_apex - self.apex_margin
+            else:
+                clear &= q[:, 0] >= u_apex + self.apex_margin
+        return ok, clear
+
+
+def visibility(
+    preset: Preset, board: Chessboard, clearance: _Clearance | None = None
+) -> dict[str, bool]:
+    """Whether the whole checker area of a posed board is visible in each half.
+
+    The outline of the checker area (the outer edges of the outer squares) must project
+    into the half, clear of the image border and of the apex band.
+    """
+    clearance = clearance or _Clearance(preset)
+    outline = board.outline_board() @ board.R.T + board.t
+    return {h.label: bool(clearance.inside(outline, h)[1].all()) for h in Half}
+
+
+def _any_visible(clearance: _Clearance, board: Chessboard) -> bool:
+    pts = board.corners_camera
+    return any(clearance.inside(pts, h)[1].any() for h in Half)
+
+
+def _calib(preset: Preset, seed: int) -> list[Shot]:
+    spec = preset.sets["calib"]
+    rng = set_rng(seed, "calib")
+    clearance = _Clearance(preset)
+    max_tilt = np.radians(float(spec["max_tilt_deg"]))
+    max_roll = np.radians(float(spec["max_roll_deg"]))
+    groups = spec["boards"]
+    total = sum(int(g["images"]) for g in groups)
+    n_partial = int(spec.get("partial_images", 0))
+    partial_at = set(
+        np.linspace(0, total - 1, n_partial + 2)[1:-1].round().astype(int).tolist()
+        if n_partial
+        else []
+    )
+    shots: list[Shot] = []
+    index = 0
+    for group in groups:
+        base = target_from_preset(group["target"], preset.targets[group["target"]])
+        n = int(group["images"])
+        lo, hi = (float(v) for v in group["distance_mm"])
+        # stratified distances and tilt signs, so every set spans the range
+        z_all = lo + (np.arange(n) + rng.uniform(0.15, 0.85, n)) / n * (hi - lo)
+        rng.shuffle(z_all)
+        for k in range(n):
+            partial = index in partial_at
+            board = None
+            for attempt in range(_MAX_TRIES):
+                shrink = 1.0 - 0.6 * attempt / _MAX_TRIES  # smaller tilts if nothing fits
+                tx = rng.uniform(-1, 1) * max_tilt * shrink
+                ty = rng.uniform(-1, 1) * max_tilt * shrink
+                roll = rng.uniform(-1, 1) * max_roll
+                R = _rotation(tx, ty, roll)
+                z = z_all[k]
+                reach = np.tan(np.radians(25.0)) * z * (1.0 if partial else 0.5)
+                centre = np.array([rng.uniform(-reach, reach), rng.uniform(-reach, reach) * 0.8, z])
+                candidate = _place_board(base, R, centre)
+                vis = visibility(preset, candidate, clearance)
+                if partial:
+                    if (
+                        not all(vis.values())
+                        and any(vis.values())
+                        and _any_visible(clearance, candidate)
+                    ):
+                        board = candidate
+                        break
+                elif all(vis.values()):
+                    board = candidate
+                    break
+            if board is None:
+                raise ValueError(
+                    f"calib image {index}: no pose of {group['target']} at {z_all[k]:.1f} mm "
+                    "shows the board in both halves; the preset's optics and boards do not fit"
+                )
+            shots.append(Shot("calib", index, board, ("partial",) if partial else ()))
+            index += 1
+    return shots
+
+
+def _test(preset: Preset, seed: int) -> list[Shot]:
+    spec = preset.sets["test"]
+    rng = set_rng(seed, "test")
+    max_tilt = np.radians(float(spec.get("max_tilt_deg", 0.0)))
+    max_offset = float(spec.get("max_offset_mm", 0.0))
+    shots: list[Shot] = []
+    index = 0
+    for group in spec["boards"]:
+        base = target_from_preset(group["target"], preset.targets[group["target"]])
+        lo, hi = (float(v) for v in group["distance_mm"])
+        step = float(group["step_mm"])
+        for z in np.arange(lo, hi + step / 2, step):
+            tx, ty, roll = rng.uniform(-1, 1, 3) * max_tilt
+            R = _rotation(tx, ty, roll)
+            centre = np.array([*(rng.uniform(-1, 1, 2) * max_offset), z])
+            shots.append(Shot("test", index, _place_board(base, R, centre)))
+            index += 1
+    return shots
+
+
+def _scene(preset: Preset, seed: int) -> list[Shot]:
+    spec = preset.sets["scene"]
+    rng = set_rng(seed, "scene")
+    clearance = _Clearance(preset)
+    base: MetalCylinder = target_from_preset(spec["target"], preset.targets[spec["target"]])
+    n = int(spec["images"])
+    lo, hi = (float(v) for v in spec["distance_mm"])
+    max_tilt = np.radians(float(spec["max_tilt_deg"]))
+    z_all = lo + (np.arange(n) + rng.uniform(0.2, 0.8, n)) / n * (hi - lo)
+    shots = []
+    for k in range(n):
+        for _ in range(_MAX_TRIES):
+            tx, ty = rng.uniform(-1, 1, 2) * max_tilt
+            roll = rng.uniform(-np.pi / 8, np.pi / 8)
+            R = _rotation(tx, ty, roll)
+            t = np.array([*(rng.uniform(-1, 1, 2) * 1.0), z_all[k]])
+            surface = base.with_pose(R, t)
+            marks = surface.marks_camera
+            if all(clearance.inside(marks, h)[1].all() for h in Half):
+                break
+        else:
+            raise ValueError(f"scene image {k}: no pose shows every mark in both halves")
+        shots.append(Shot("scene", k, surface))
+    return shots
+
+
+_PLANNERS = {"calib": _calib, "test": _test, "scene": _scene}
+
+
+def plan_set(preset: Preset, set_name: str, seed: int) -> list[Shot]:
+    """The shots of one image set of a preset, deterministic for a seed."""
+    if set_name not in _PLANNERS:
+        raise ValueError(f"unknown image set {set_name!r}; known: {', '.join(SET_NAMES)}")
+    if set_name not in preset.sets:
+        raise ValueError(f"the preset {preset.name!r} defines no {set_name!r} set")
+    return _PLANNERS[set_name](preset, seed)
+
+
+def describe_set(preset: Preset, set_name: str) -> dict[str, Any]:
+    """The preset's protocol for a set, as plain data (for the manifest)."""
+    return dict(preset.sets[set_name])

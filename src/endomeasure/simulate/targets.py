@@ -1,0 +1,330 @@
+"""Scene objects the simulator renders: a chessboard target and a textured metal cylinder.
+
+Every object has a pose ``T_camera_object`` (rotation ``R`` and translation ``t``, mm)
+and answers :meth:`hit`: where rays meet it, its surface normal, diffuse albedo and
+specular weight there. Geometry and texture are analytic, so the ground truth (corner
+positions, mark positions) is exact.
+
+Board frame (the detector's convention, see ``features/boards.py``): inner corners on
+``z = 0``, corner ``(col, row)`` at ``(col * s, row * s, 0)``, id ``row * cols + col``.
+The checker area spans ``-s <= x < cols * s``, ``-s <= y < rows * s`` (one outer square
+beyond the inner corners on each side); the square whose corner nearest the origin is
+``(i s, j s)`` is black when ``i + j`` is even, so the top-left outer square is black.
+Around the checker area a white margin of ``margin_squares`` squares, then the card ends.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import cached_property
+from typing import Any, NamedTuple
+
+import numpy as np
+
+__all__ = ["Hit", "Chessboard", "MetalCylinder", "target_from_preset"]
+
+
+class Hit(NamedTuple):
+    """Where rays meet an object (arrays over rays, NaN/False where missed)."""
+
+    t: np.ndarray  # (N,) mm along the unit direction, NaN where missed
+    hit: np.ndarray  # (N,) bool
+    normal: tuple  # 3 components (arrays (N,) or floats), unit, camera frame, facing the rays
+    albedo: np.ndarray  # (N,) diffuse reflectance, 0 where missed
+    specular: float  # Blinn-Phong weight, 0 for matte objects
+
+
+def _pose(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    return R, t
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Chessboard:
+    """A flat printed chessboard on a white card.
+
+    Attributes
+    ----------
+    cols, rows : int
+        Inner corners per row / per column.
+    square_mm : float, mm
+    margin_squares : float
+        White margin around the checker area, in squares.
+    black, white : float
+        Diffuse reflectances of the dark and light squares.
+    R, t : ndarray (3, 3), (3,)
+        Pose ``T_camera_board``: a board point ``p`` is at ``R p + t`` in the camera frame.
+    """
+
+    cols: int
+    rows: int
+    square_mm: float
+    margin_squares: float
+    black: float
+    white: float
+    R: np.ndarray
+    t: np.ndarray
+    name: str = "board"
+
+    kind = "chessboard"
+
+    @property
+    def spec(self) -> str:
+        """Detector spec string, e.g. ``chessboard:8x6:1``."""
+        return f"chessboard:{self.cols}x{self.rows}:{self.square_mm:g}"
+
+    def with_pose(self, R: np.ndarray, t: np.ndarray) -> Chessboard:
+        R, t = _pose(R, t)
+        return dataclasses.replace(self, R=R, t=t)
+
+    @cached_property
+    def corners_board(self) -> np.ndarray:
+        """Inner corners in the board frame, shape (rows * cols, 3), mm, id order."""
+        row, col = np.divmod(np.arange(self.rows * self.cols), self.cols)
+        s = self.square_mm
+        return np.stack([col * s, row * s, np.zeros(row.size)], axis=-1)
+
+    @property
+    def corners_camera(self) -> np.ndarray:
+        """Inner corners in the camera frame, shape (rows * cols, 3), mm, id order."""
+        return self.corners_board @ self.R.T + self.t
+
+    @property
+    def centre_board(self) -> np.ndarray:
+        """Centre of the checker area in the board frame, mm."""
+        s = self.square_mm
+        return np.array([(self.cols - 1) * s / 2.0, (self.rows - 1) * s / 2.0, 0.0])
+
+    def outline_board(self, per_side: int = 24, grow_squares: float = 0.0) -> np.ndarray:
+        """Points along the outer edge of the checker area, board frame, shape (4 per_side, 3).
+
+        ``grow_squares`` moves the outline outwards (e.g. into the white margin).
+        """
+        s = self.square_mm
+        lo_x, hi_x = -s * (1 + grow_squares), s * (self.cols + grow_squares)
+        lo_y, hi_y = -s * (1 + grow_squares), s * (self.rows + grow_squares)
+        f = np.linspace(0.0, 1.0, per_side, endpoint=False)
+        sides = [
+            np.stack([lo_x + f * (hi_x - lo_x), np.full_like(f, lo_y)], -1),
+            np.stack([np.full_like(f, hi_x), lo_y + f * (hi_y - lo_y)], -1),
+            np.stack([hi_x - f * (hi_x - lo_x), np.full_like(f, hi_y)], -1),
+            np.stack([np.full_like(f, lo_x), hi_y - f * (hi_y - lo_y)], -1),
+        ]
+        xy = np.concatenate(sides)
+        return np.concatenate([xy, np.zeros((xy.shape[0], 1))], axis=-1)
+
+    def hit(self, o: tuple[np.ndarray, ...], d: tuple[np.ndarray, ...]) -> Hit:
+        """Intersect rays with the card.
+
+        Parameters
+        ----------
+        o, d : tuple of 3 ndarray, shape (N,)
+            Ray origin (mm) and unit direction components, camera frame.
+        """
+        R, t0 = self.R, self.t
+        nx, ny, nz = R[:, 2]
+        denom = d[0] * nx + d[1] * ny + d[2] * nz
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (R[:, 2] @ t0 - (o[0] * nx + o[1] * ny + o[2] * nz)) / denom
+        t[~(t > 0)] = np.nan
+        px, py, pz = (o[k] + t * d[k] - t0[k] for k in range(3))
+        inv_s = 1.0 / self.square_mm
+        bx = (px * R[0, 0] + py * R[1, 0] + pz * R[2, 0]) * inv_s  # (R^T (p - t))_x / s
+        by = (px * R[0, 1] + py * R[1, 1] + pz * R[2, 1]) * inv_s
+        m = self.margin_squares
+        hit = (bx >= -1 - m) & (bx < self.cols + m) & (by >= -1 - m) & (by < self.rows + m)
+        i = np.floor(bx)
+        j = np.floor(by)
+        checker = (i >= -1) & (i <= self.cols - 1) & (j >= -1) & (j <= self.rows - 1)
+        dark = checker & (np.mod(i + j, 2.0) == 0)
+        albedo = np.where(dark, self.black, self.white).astype(t.dtype)
+        albedo[~hit] = 0.0
+        t[~hit] = np.nan
+        flip = -1.0 if R[:, 2] @ np.array([0.0, 0.0, 1.0]) > 0 else 1.0  # face the camera
+        normal = (flip * nx, flip * ny, flip * nz)
+        return Hit(t, hit, normal, albedo, 0.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "name": self.name,
+            "spec": self.spec,
+            "cols": self.cols,
+            "rows": self.rows,
+            "square_mm": self.square_mm,
+            "margin_squares": self.margin_squares,
+            "reflectance_black": self.black,
+            "reflectance_white": self.white,
+        }
+
+
+def _value_noise(grid: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Smoothly interpolated lattice noise: ``grid`` sampled at fractional ``(x, y)``.
+
+    Coordinates wrap around the grid, so the texture is defined everywhere.
+    """
+    ny, nx = grid.shape
+    x0 = np.floor(x)
+    y0 = np.floor(y)
+    fx = x - x0
+    fy = y - y0
+    fx = fx * fx * (3.0 - 2.0 * fx)  # smoothstep: C1 across lattice lines
+    fy = fy * fy * (3.0 - 2.0 * fy)
+    ix = np.mod(x0.astype(np.int64), nx)
+    iy = np.mod(y0.astype(np.int64), ny)
+    ix1 = np.mod(ix + 1, nx)
+    iy1 = np.mod(iy + 1, ny)
+    top = grid[iy, ix] * (1 - fx) + grid[iy, ix1] * fx
+    bottom = grid[iy1, ix] * (1 - fx) + grid[iy1, ix1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+# (cell along the arc, cell along the axis, weight) of the texture's noise octaves, mm:
+# fine brushing streaks along the arc, then blotches of oxidation and wear.
+_OCTAVES = ((0.5, 0.05, 0.35), (0.12, 0.12, 0.25), (0.4, 0.4, 0.25), (1.5, 1.5, 0.15))
+_GRID = 256
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class MetalCylinder:
+    """A convex metal cylinder (e.g. a blade root or a tube) with small dark marks.
+
+    Surface frame: the cylinder axis is parallel to y through ``(0, 0, radius)``; the
+    origin is the surface point facing the camera, with outward normal ``-z``. A surface
+    point with arc length ``s`` (from the origin, around the axis) and height ``y`` is
+    ``(radius sin(s / radius), y, radius (1 - cos(s / radius)))``.
+
+    Attributes
+    ----------
+    radius_mm : float
+    albedo, texture_contrast : float
+        Mean diffuse reflectance and its relative variation by the texture.
+    specular, shininess : float
+        Blinn-Phong weight and exponent (a brushed-metal sheen).
+    texture_seed : int
+        Seed of the texture lattices (fixed per object: every image shows the same part).
+    marks_sy : ndarray, shape (M, 2), mm
+        Arc length and height of the mark centres.
+    mark_radius_mm, mark_albedo : float
+    R, t : pose ``T_camera_surface``.
+    """
+
+    radius_mm: float
+    albedo: float
+    texture_contrast: float
+    specular: float
+    shininess: float
+    texture_seed: int
+    marks_sy: np.ndarray
+    mark_radius_mm: float
+    mark_albedo: float
+    R: np.ndarray
+    t: np.ndarray
+    name: str = "metal"
+
+    kind = "cylinder"
+
+    def with_pose(self, R: np.ndarray, t: np.ndarray) -> MetalCylinder:
+        R, t = _pose(R, t)
+        return dataclasses.replace(self, R=R, t=t)
+
+    @cached_property
+    def _lattices(self) -> list[np.ndarray]:
+        rng = np.random.default_rng(self.texture_seed)
+        return [rng.uniform(-1.0, 1.0, size=(_GRID, _GRID)) for _ in _OCTAVES]
+
+    def surface_points(self, s: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Surface-frame points of arc length ``s`` and height ``y``, shape (..., 3), mm."""
+        phi = np.asarray(s, dtype=np.float64) / self.radius_mm
+        return np.stack(
+            [self.radius_mm * np.sin(phi), np.asarray(y, dtype=np.float64) + 0 * phi,
+             self.radius_mm * (1.0 - np.cos(phi))], axis=-1,
+        )  # fmt: skip
+
+    @property
+    def marks_surface(self) -> np.ndarray:
+        """Mark centres in the surface frame, shape (M, 3), mm."""
+        return self.surface_points(self.marks_sy[:, 0], self.marks_sy[:, 1])
+
+    @property
+    def marks_camera(self) -> np.ndarray:
+        """Mark centres in the camera frame, shape (M, 3), mm."""
+        return self.marks_surface @ self.R.T + self.t
+
+    def texture(self, s: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Diffuse albedo at surface coordinates (arc length, height), mm."""
+        noise = np.zeros(np.shape(s))
+        for (cell_s, cell_y, weight), grid in zip(_OCTAVES, self._lattices, strict=True):
+            noise += weight * _value_noise(grid, s / cell_s, y / cell_y)
+        albedo = self.albedo * (1.0 + self.texture_contrast * noise)
+        # marks: dark discs with a soft rim (anti-aliasing is the renderer's job; the rim
+        # is the physical edge of a punched or etched mark)
+        for ms, my in self.marks_sy:
+            r = np.hypot(s - ms, y - my)
+            edge = np.clip((r - self.mark_radius_mm) / (0.15 * self.mark_radius_mm) + 0.5, 0, 1)
+            albedo = self.mark_albedo + (albedo - self.mark_albedo) * edge
+        return albedo
+
+    def hit(self, o: tuple[np.ndarray, ...], d: tuple[np.ndarray, ...]) -> Hit:
+        """Intersect rays (component tuples, camera frame) with the cylinder's front side."""
+        R, t0 = self.R, self.t
+        rel = [o[k] - t0[k] for k in range(3)]
+        # to the surface frame: R^T v
+        lo = [rel[0] * R[0, k] + rel[1] * R[1, k] + rel[2] * R[2, k] for k in range(3)]
+        ld = [d[0] * R[0, k] + d[1] * R[1, k] + d[2] * R[2, k] for k in range(3)]
+        r0 = self.radius_mm
+        oz = lo[2] - r0
+        a = ld[0] ** 2 + ld[2] ** 2
+        b = 2.0 * (lo[0] * ld[0] + oz * ld[2])
+        c = lo[0] ** 2 + oz**2 - r0 * r0
+        disc = b * b - 4.0 * a * c
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = (-b - np.sqrt(disc)) / (2.0 * a)
+        hit = (disc > 0) & (t > 0)
+        t[~hit] = np.nan
+        sx, sy, sz = (lo[k] + t * ld[k] for k in range(3))
+        s_arc = r0 * np.arctan2(sx, r0 - sz)
+        albedo = np.zeros_like(t)
+        albedo[hit] = self.texture(s_arc[hit].astype(np.float64), sy[hit].astype(np.float64))
+        # outward normal (x, 0, z - r) / r in the surface frame, to the camera frame
+        ux, uz = sx / r0, (sz - r0) / r0
+        normal = tuple(ux * R[k, 0] + uz * R[k, 2] for k in range(3))
+        return Hit(t, hit, normal, albedo, self.specular)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "name": self.name,
+            "radius_mm": self.radius_mm,
+            "surface_frame": (
+                "cylinder axis parallel to y through (0, 0, radius); origin on the surface "
+                "facing the camera; point(s, y) = (r sin(s/r), y, r (1 - cos(s/r)))"
+            ),
+            "albedo": self.albedo,
+            "texture_contrast": self.texture_contrast,
+            "specular": self.specular,
+            "shininess": self.shininess,
+            "texture_seed": self.texture_seed,
+            "mark_radius_mm": self.mark_radius_mm,
+        }
+
+
+def target_from_preset(name: str, spec: dict[str, Any]):
+    """Build an (unposed) target from its preset entry."""
+    kind = spec.get("kind")
+    eye, zero = np.eye(3), np.zeros(3)
+    if kind == "chessboard":
+        return Chessboard(
+            int(spec["cols"]), int(spec["rows"]), float(spec["square_mm"]),
+            float(spec.get("margin_squares", 1.0)), float(spec.get("black", 0.06)),
+            float(spec.get("white", 0.85)), eye, zero, name,
+        )  # fmt: skip
+    if kind == "cylinder":
+        return MetalCylinder(
+            float(spec["radius_mm"]), float(spec["albedo"]), float(spec["texture_contrast"]),
+            float(spec["specular"]), float(spec["shininess"]), int(spec["texture_seed"]),
+            np.asarray(spec["marks_mm"], dtype=np.float64).reshape(-1, 2),
+            float(spec["mark_radius_mm"]), float(spec["mark_albedo"]), eye, zero, name,
+        )  # fmt: skip
+    raise ValueError(f"target {name!r} has unknown kind {kind!r}")
