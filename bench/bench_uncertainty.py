@@ -1,0 +1,110 @@
+"""Speed of the error prediction: one measurement's unscented transform, and a
+10,000-point error map of the working volume, each against a peer in the same run.
+
+Usage::
+
+    .venv/bin/python bench/bench_uncertainty.py [--map-points N] [--write]
+
+Prints the timings; ``--write`` also rewrites the ``uncertainty`` section of
+docs/benchmarks.md. Model: the raytrace design of ``bench_models.py``. Targets
+(issue 8): one measurement's UT under 20 ms, a 10,000-point map under 10 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+import endomeasure  # noqa: F401  (pins BLAS threads before numpy loads)
+from _common import machine, median_time, write_section
+from bench_models import raytrace_model
+from endomeasure.measure.predict import error_map, predict_measurement_error, volume_grid
+from endomeasure.solvers.triangulate import triangulate
+
+SIGMA_PX = 0.05
+UT_TARGET_S = 0.020
+MAP_TARGET_S = 10.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--map-points", type=int, default=10_000)
+    parser.add_argument("--write", action="store_true", help="update docs/benchmarks.md")
+    args = parser.parse_args()
+    model = raytrace_model()
+
+    # one 4 mm length at 20 mm
+    pts = np.array([[-2.0, 0.0, 20.0], [2.0, 0.5, 20.5]])
+    ql, qr = model.project(pts, "left").pixels, model.project(pts, "right").pixels
+    free = model.free_mask
+    param_cov = np.diag((1e-4 * np.maximum(np.abs(model.params[free]), 1.0)) ** 2)
+    t_tri = median_time(lambda: triangulate(model, ql, qr), runs=50)
+    t_ut = median_time(
+        lambda: predict_measurement_error(model, "length", ql, qr, sigma=SIGMA_PX), runs=50
+    )
+    t_lin = median_time(
+        lambda: predict_measurement_error(model, "length", ql, qr, sigma=SIGMA_PX, method="linear"),
+        runs=50,
+    )
+    t_utc = median_time(
+        lambda: predict_measurement_error(
+            model, "length", ql, qr, sigma=SIGMA_PX, param_cov=param_cov
+        ),
+        runs=10,
+    )
+
+    # the volume map: an x-segment of 1 mm centred at grid points seen by both halves
+    grid = volume_grid(model, np.linspace(10.0, 45.0, 15), n_u=60, n_v=45)
+    if grid.shape[0] < args.map_points:
+        raise SystemExit(f"the grid has only {grid.shape[0]} visible points")
+    centres = grid[np.linspace(0, grid.shape[0] - 1, args.map_points).astype(int)]
+    start = time.perf_counter()
+    em = error_map(model, centres, "x-segment", 1.0, sigma=SIGMA_PX)
+    t_map = time.perf_counter() - start
+    # peer: triangulating the map's own noise-free correspondences once
+    tp = centres[:, None, :] + np.array([[-0.5, 0, 0], [0.5, 0, 0]])
+    pl, pr = model.project(tp, "left").pixels, model.project(tp, "right").pixels
+    start = time.perf_counter()
+    triangulate(model, pl, pr)
+    t_peer = time.perf_counter() - start
+
+    L = 8
+    body = f"""## Error prediction (`bench/bench_uncertainty.py`)
+
+Raytrace design of `tests/conftest.py`, sigma = {SIGMA_PX} px ({machine()}).
+
+One measurement (a 4 mm length at 20 mm, L = {L} pixel inputs, 2L+1 = {2 * L + 1} sigma
+points in one batched triangulation), median of 50 runs:
+
+| what | wall time | ratio to one triangulation |
+|---|---:|---:|
+| ML triangulation of its 2 correspondences (peer) | {t_tri * 1e3:.2f} ms | 1.0 |
+| UT, image noise | {t_ut * 1e3:.2f} ms | {t_ut / t_tri:.1f} |
+| linear, image noise | {t_lin * 1e3:.2f} ms | {t_lin / t_tri:.1f} |
+| UT, image noise + calibration ({int(free.sum())} free parameters, median of 10) | {t_utc * 1e3:.1f} ms | {t_utc / t_tri:.1f} |
+
+With the calibration covariance every parameter sigma point is another model, so the
+cost is one triangulation per parameter sigma point (2F + 1 models).
+
+Error map: a 1 mm x-segment centred at each of {args.map_points:,} grid points seen by
+both halves (10-45 mm), UT with image noise ({em.visible.sum():,} templates visible in
+both halves):
+
+| what | wall time | ratio |
+|---|---:|---:|
+| ML triangulation of the templates' {2 * args.map_points:,} correspondences (peer) | {t_peer:.2f} s | 1.0 |
+| error map (projection + UT) | {t_map:.2f} s | {t_map / t_peer:.1f} |
+
+Targets: UT under {UT_TARGET_S * 1e3:g} ms ({"met" if t_ut < UT_TARGET_S else "missed"}),
+10,000-point map under {MAP_TARGET_S:g} s ({"met" if t_map < MAP_TARGET_S else "missed"}).
+"""  # noqa: E501
+    if args.write:
+        write_section("uncertainty", body)
+    else:
+        print(body)
+
+
+if __name__ == "__main__":
+    main()
