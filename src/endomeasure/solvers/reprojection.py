@@ -318,6 +318,24 @@ def _solve2(J, b):
     return inv @ b
 
 
+def _miss_derivative(model, i, x, y, half, P):
+    """``dG/d params[i]`` by central differences, one-sided at the edge of the model's
+    valid domain (e.g. a face distance within a step of zero)."""
+    h = FD_STEP_PARAM
+    sides = []
+    for sign in (1.0, -1.0):
+        p = model.params.copy()
+        p[i] += sign * h
+        try:
+            sides.append(_miss_at_depth(model.with_params(p), x, y, half, P)[0])
+        except ValueError:
+            sides.append(None)
+    if sides[0] is not None and sides[1] is not None:
+        return (sides[0] - sides[1]) / (2 * h)
+    g0 = _miss_at_depth(model, x, y, half, P)[0]
+    return (sides[0] - g0) / h if sides[0] is not None else (g0 - sides[1]) / h
+
+
 class RaytraceProjector(Projector):
     """Projection through the ``raytrace`` model by warm-started Newton ray aiming.
 
@@ -386,7 +404,10 @@ class RaytraceProjector(Projector):
         # anything Newton did not settle: the model's own aiming from scratch
         cold = np.flatnonzero(~done)
         if cold.size:
-            xa, ya, st = aim_rays(model, P[cold], half)
+            try:
+                xa, ya, st = aim_rays(model, P[cold], half)
+            except ValueError:  # a trial model so wild that the half has no valid rays
+                xa, ya, st = np.nan, np.nan, np.full(cold.size, Status.NOT_CONVERGED)
             x[cold] = np.where(st == Status.OK, xa, np.nan)
             y[cold] = np.where(st == Status.OK, ya, np.nan)
         self._x[idx], self._y[idx] = x, y
@@ -411,7 +432,6 @@ class RaytraceProjector(Projector):
         dq_dparams = np.zeros((n, 2, F))
         dq_dpoints = np.zeros((n, 2, 3))
         coeffs = (model.k1, model.k2, model.p1, model.p2, model.k3)
-        base = model.params
         for half, idx in zip((Half.LEFT, Half.RIGHT), self.groups, strict=False):
             if idx.size == 0:
                 continue
@@ -435,13 +455,7 @@ class RaytraceProjector(Projector):
             names = [nm for nm in _PRISM[half] if nm in self._free_names]
             G_theta = np.zeros((idx.size, 2, len(names)))
             for k, name in enumerate(names):
-                i = model.index(name)
-                hi, lo = base.copy(), base.copy()
-                hi[i] += FD_STEP_PARAM
-                lo[i] -= FD_STEP_PARAM
-                gp, _, _ = _miss_at_depth(model.with_params(hi), x, y, half, P)
-                gm, _, _ = _miss_at_depth(model.with_params(lo), x, y, half, P)
-                G_theta[:, :, k] = (gp - gm) / (2 * FD_STEP_PARAM)
+                G_theta[:, :, k] = _miss_derivative(model, model.index(name), x, y, half, P)
             rhs = np.concatenate([G_theta, G_P], axis=-1)
             dxy = -_solve2(G_xy, rhs)  # (N, 2, K + 3)
             dq = q_dxy @ dxy
