@@ -355,3 +355,97 @@ def detect(
         + (f"stored in {report.session}" if report.stored else "nothing stored")
     )
     raise typer.Exit(report.exit_code)
+
+
+@command("calibrate")
+def calibrate(
+    session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],
+    model: Annotated[
+        str, typer.Option("--model", help="Camera model: pinhole, raytrace or all.")
+    ] = "all",
+    glass_index: Annotated[
+        float | None,
+        typer.Option("--glass-index", help="Prism glass index (default N-BK7, 1.5168)."),
+    ] = None,
+    free_index: Annotated[
+        bool, typer.Option("--free-index", help="Estimate the glass index too.")
+    ] = False,
+    seed: Annotated[
+        Path | None,
+        typer.Option("--seed", help="JSON raytrace model with nominal design values."),
+    ] = None,
+    plot: Annotated[
+        Path | None, typer.Option("--plot", help="Folder for residual plots (PNG).")
+    ] = None,
+    json_output: JsonOption = False,
+) -> None:
+    """Fit camera models to the session's detections (both halves, one cost) and store them."""
+    from endomeasure.pipeline.calibrate import calibrate_session
+
+    console = _stderr_console()
+    with console.status("calibrating", spinner="dots") if (
+        console.is_terminal and not json_output
+    ) else contextlib.nullcontext():
+        report = calibrate_session(session, model, glass_index, free_index, seed, plot)
+    if json_output:
+        _print_json(report.to_dict())
+    else:
+        _render_calibration(console, report)
+    if report.refused:
+        for name, why in report.refused.items():
+            sys.stderr.write(f"error: {name}: {_one_line(why)}\n")
+        raise typer.Exit(1)
+
+
+def _render_calibration(console: Console, report: Any) -> None:
+    from rich.table import Table
+
+    models = report.models
+    if models:
+        table = Table(title=f"calibration of {report.session}", title_justify="left")
+        for column in ("model", "RMS px", "left px", "right px", "sigma px", "corners",
+                       "outliers", "worst images (RMS px)"):  # fmt: skip
+            table.add_column(column, justify="left" if column in ("model",) else "right")
+        for s in models.values():
+            worst = ", ".join(f"{n} {r:.3f}" for n, r in s.worst_images)
+            figures = (s.rms, s.rms_half[0], s.rms_half[1], s.residual_sigma)
+            table.add_row(s.name, *(f"{v:.4f}" for v in figures), str(s.n_corners),
+                          str(s.n_outliers), worst)  # fmt: skip
+        console.print(table)
+    for s in models.values():
+        table = Table(title=f"{s.name} parameters (+- 1 sigma)", title_justify="left")
+        table.add_column("parameter")
+        table.add_column("value", justify="right")
+        table.add_column("std", justify="right")
+        for name, value in s.params.items():
+            std = s.std.get(name)
+            table.add_row(name, f"{value:.6g}", "fixed" if std is None else f"{std:.2g}")
+        console.print(table)
+        strongest = ", ".join(f"{a}~{b} {r:+.3f}" for a, b, r in s.correlations)
+        console.print(f"strongest correlations: {strongest}")
+        for path in s.plots:
+            console.print(f"plot: {path}")
+    console.print(
+        f"{report.n_images} images, split column {report.split}; stored: "
+        + (", ".join(models) if models else "nothing")
+    )
+
+
+@command("export")
+def export(
+    session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],
+    out: Annotated[Path, typer.Argument(help="Output file.", show_default=False)],
+    model: Annotated[str, typer.Option("--model", help="Stored model name.")] = "pinhole",
+    fmt: Annotated[
+        str, typer.Option("--format", help="json or opencv-yaml (pinhole only).")
+    ] = "json",
+    json_output: JsonOption = False,
+) -> None:
+    """Write a calibrated model to JSON, or the pinhole pair to an OpenCV YAML file."""
+    from endomeasure.pipeline.calibrate import export_session_model
+
+    path = export_session_model(session, model, fmt, out)
+    if json_output:
+        _print_json({"session": str(session), "model": model, "format": fmt, "out": str(path)})
+        return
+    _stderr_console().print(f"{model} from {session} written to {path} ({fmt})")

@@ -1,0 +1,127 @@
+"""Export a stored camera model: JSON for every model, OpenCV FileStorage YAML for ``pinhole``.
+
+JSON (``--format json``): the model's plain description (:meth:`CameraModel.to_dict`:
+registry name, parameter names and values, configuration) plus, when the model is a
+calibration result, its free parameters, their standard deviations and covariance, and
+the RMS residuals. :func:`endomeasure.models.model_from_dict` reads it back (and
+``endomeasure calibrate --seed`` accepts it as a seed).
+
+OpenCV YAML (``--format opencv-yaml``, ``pinhole`` only), readable by
+``cv2.FileStorage``: ``M1``, ``D1``, ``M2``, ``D2`` (camera matrices and distortion
+``k1 k2 p1 p2 k3`` of the left and right virtual cameras), ``R``, ``T`` (right camera
+from left, ``stereoCalibrate``'s convention, mm), ``image_width``, ``image_height``,
+``split``. Both principal points are in full-image pixel coordinates, as everywhere in
+endomeasure; for OpenCV functions that take the right half as its own image, subtract
+``split`` from ``M2[0, 2]``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from endomeasure.errors import BadInputError
+
+__all__ = ["EXPORT_FORMATS", "export_model", "model_document", "read_opencv_yaml"]
+
+EXPORT_FORMATS = ("json", "opencv-yaml")
+
+
+def model_document(model, extras: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The JSON document of a model (plus calibration extras such as covariance)."""
+    doc = model.to_dict()
+    if extras:
+        doc["calibration"] = extras
+    return doc
+
+
+def _atomic_write(path: Path, write) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def export_model(model, fmt: str, out: str | Path, extras: dict[str, Any] | None = None) -> Path:
+    """Write ``model`` to ``out`` in format ``fmt`` (see the module docstring).
+
+    Parameters
+    ----------
+    model : CameraModel
+    fmt : {'json', 'opencv-yaml'}
+    out : path
+    extras : dict, optional
+        Calibration figures to add to the JSON document.
+
+    Returns
+    -------
+    Path
+        The written file (written atomically: a temporary file renamed into place).
+    """
+    out = Path(out)
+    if fmt not in EXPORT_FORMATS:
+        raise BadInputError(f"unknown export format {fmt!r}; choose {' or '.join(EXPORT_FORMATS)}")
+    if not out.parent.is_dir():
+        raise BadInputError("the output folder does not exist", path=str(out.parent))
+    if fmt == "json":
+        text = json.dumps(model_document(model, extras), indent=2) + "\n"
+        _atomic_write(out, lambda p: p.write_text(text))
+        return out
+    if model.NAME != "pinhole":
+        raise BadInputError(
+            f"the {model.NAME} model has no OpenCV equivalent; only pinhole exports to opencv-yaml",
+            hint="export it as json",
+        )
+    import cv2
+
+    def write(path: Path) -> None:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
+        if not fs.isOpened():
+            raise BadInputError("cannot write the YAML file", path=str(out))
+        R, t = model.pose_right_left()
+        for tag, half in (("1", "left"), ("2", "right")):
+            fx, fy, cx, cy, k1, k2, p1, p2, k3 = model.intrinsics(half)
+            fs.write(f"M{tag}", np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
+            fs.write(f"D{tag}", np.array([[k1, k2, p1, p2, k3]]))
+        fs.write("R", R)
+        fs.write("T", t.reshape(3, 1))
+        fs.write("image_width", int(model.config.image_size[0]))
+        fs.write("image_height", int(model.config.image_size[1]))
+        fs.write("split", int(model.config.split))
+        fs.release()
+
+    suffix_ok = out.suffix.lower() in (".yml", ".yaml")
+    if not suffix_ok:
+        raise BadInputError("an OpenCV YAML file must end in .yml or .yaml", path=str(out))
+    # cv2.FileStorage chooses the format by the name's suffix: keep it on the temporary file
+    tmp = out.with_name(f".tmp{os.getpid()}-{out.name}")
+    try:
+        write(tmp)
+        os.replace(tmp, out)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return out
+
+
+def read_opencv_yaml(path: str | Path) -> dict[str, np.ndarray]:
+    """Read back an exported pinhole YAML with ``cv2.FileStorage`` (arrays by tag)."""
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise BadInputError("cannot read the OpenCV YAML file", path=str(path))
+    try:
+        out = {tag: fs.getNode(tag).mat() for tag in ("M1", "D1", "M2", "D2", "R", "T")}
+        for tag in ("image_width", "image_height", "split"):
+            out[tag] = int(fs.getNode(tag).real())
+    finally:
+        fs.release()
+    return out

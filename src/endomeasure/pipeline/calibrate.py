@@ -1,0 +1,425 @@
+"""``endomeasure calibrate``: fit camera models to a session's detections and store them.
+
+Steps: read the session (image size, split, boards, the detections of the calibration
+images); calibrate each requested model (:func:`endomeasure.solvers.calibrate.calibrate`;
+``raytrace`` is seeded from the ``pinhole`` result when both are asked for); store every
+model that succeeded in one atomic session edit; draw residual plots if asked; report.
+A model whose calibration is refused is not stored, and the report carries the refusal
+(the command then exits 1).
+
+Stored per model (group ``models/<name>``; ``docs/session-format.md``): the parameters
+with names and configuration, and arrays ``free_names``, ``covariance``,
+``correlation``, ``std``, ``rvecs``/``tvecs`` (board poses ``T_model_board``),
+``image_names``/``image_boards``, the observations ``obs_image``, ``obs_half``,
+``obs_ids``, ``obs_board_points``, ``obs_pixels``, ``residuals``, ``inliers``, and
+``rms_image``, ``rms_image_half``, ``rms_half``; attributes ``rms``,
+``residual_variance``, ``status``, ``message``, ``nfev``, ``rounds``, ``n_outliers``,
+``outlier_threshold_px``, ``start``. Together these are everything the uncertainty of a
+later measurement needs (the covariance) and everything needed to recompute it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from endomeasure.conventions import Half
+from endomeasure.errors import BadInputError, CalibrationError
+
+__all__ = [
+    "CalibrateReport",
+    "ModelSummary",
+    "calibrate_session",
+    "load_calibration_inputs",
+    "result_to_record",
+    "model_from_record",
+    "export_session_model",
+    "plot_residuals",
+    "MODEL_CHOICES",
+]
+
+MODEL_CHOICES = ("pinhole", "raytrace", "all")
+_ORDER = ("pinhole", "raytrace")
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelSummary:
+    """What the report says about one calibrated model (plain data)."""
+
+    name: str
+    rms: float
+    rms_half: tuple[float, float]
+    n_images: int
+    n_corners: int
+    n_outliers: int
+    worst_images: list[tuple[str, float]]
+    params: dict[str, float]
+    std: dict[str, float]
+    correlations: list[tuple[str, str, float]]
+    residual_sigma: float
+    status: int
+    nfev: int
+    start: str
+    plots: list[str] = dataclasses.field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["rms_px"] = d.pop("rms")
+        d["rms_half_px"] = {"left": self.rms_half[0], "right": self.rms_half[1]}
+        del d["rms_half"]
+        d["worst_images"] = [{"image": n, "rms_px": r} for n, r in self.worst_images]
+        d["correlations"] = [{"a": a, "b": b, "r": r} for a, b, r in self.correlations]
+        d["residual_sigma_px"] = d.pop("residual_sigma")
+        return d
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrateReport:
+    session: str
+    image_size: tuple[int, int]
+    split: int
+    n_images: int
+    models: dict[str, ModelSummary]
+    refused: dict[str, str]
+
+    @property
+    def ok(self) -> bool:
+        return not self.refused
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "session": self.session,
+            "image_size": list(self.image_size),
+            "split": self.split,
+            "n_images": self.n_images,
+            "models": {k: v.to_dict() for k, v in self.models.items()},
+            "refused": dict(self.refused),
+        }
+
+
+# ----- reading ------------------------------------------------------------------------------
+
+
+def load_calibration_inputs(session: str | Path):
+    """Detections of the session's calibration images, as the solver takes them.
+
+    Returns
+    -------
+    views : list of ViewDetections
+    boards : dict of str to ndarray, shape (N, 3), mm
+    image_size : (int, int)
+    split : int
+    """
+    from endomeasure.features.boards import parse_board_spec
+    from endomeasure.io.session import open_session
+    from endomeasure.solvers.calibrate import ViewDetections
+
+    with open_session(session) as s:
+        meta = s.metadata()
+        if meta.image_size is None or meta.split is None:
+            raise BadInputError(
+                "the session has no image size or split yet",
+                path=str(session),
+                hint="run `endomeasure detect` first",
+            )
+        calib_images = set(s.image_names("calib"))
+        boards = {name: parse_board_spec(b.spec).object_points for name, b in s.boards().items()}
+        detections = s.detections()
+    by_view: dict[tuple[str, str], dict[Half, Any]] = {}
+    for det in detections:
+        if calib_images and det.image not in calib_images:
+            continue
+        by_view.setdefault((det.image, det.board), {})[Half.parse(det.half)] = det
+    boards_per_image: dict[str, int] = {}
+    for image, _ in by_view:
+        boards_per_image[image] = boards_per_image.get(image, 0) + 1
+    views = []
+    for (image, board), halves in sorted(by_view.items()):
+        ids, pixels = [], []
+        for h in Half:
+            det = halves.get(h)
+            if det is None or not det.ok:
+                ids.append(np.zeros(0, dtype=np.int64))
+                pixels.append(np.zeros((0, 2)))
+            else:
+                ids.append(np.asarray(det.ids, dtype=np.int64))
+                pixels.append(np.asarray(det.pixels, dtype=np.float64))
+        name = image if boards_per_image[image] == 1 else f"{image}@{board}"
+        views.append(ViewDetections(name, board, tuple(ids), tuple(pixels)))
+    if not views:
+        raise CalibrationError(
+            "the session holds no detections of calibration images",
+            path=str(session),
+            hint="run `endomeasure detect SESSION IMAGES --board SPEC` first",
+        )
+    return views, boards, meta.image_size, meta.split
+
+
+# ----- storing --------------------------------------------------------------------------------
+
+
+def result_to_record(result, name: str | None = None):
+    """A session :class:`~endomeasure.io.session.ModelRecord` holding a calibration result."""
+    from endomeasure.io.session import ModelRecord
+
+    model = result.model
+    arrays = {
+        "free_names": np.array(result.free_names, dtype=object),
+        "covariance": result.covariance,
+        "correlation": result.correlation,
+        "std": result.std,
+        "rvecs": result.rvecs,
+        "tvecs": result.tvecs,
+        "image_names": np.array(result.image_names, dtype=object),
+        "image_boards": np.array(result.image_boards, dtype=object),
+        "obs_image": result.obs_image.astype(np.int32),
+        "obs_half": result.obs_half.astype(np.int8),
+        "obs_ids": result.obs_ids.astype(np.int32),
+        "obs_board_points": result.obs_board_points,
+        "obs_pixels": result.obs_pixels,
+        "residuals": result.residuals,
+        "inliers": result.inliers.astype(np.uint8),
+        "rms_image": result.rms_image,
+        "rms_image_half": result.rms_image_half,
+        "rms_half": result.rms_half,
+    }
+    attrs = {
+        "kind": "calibration",
+        "rms": result.rms,
+        "residual_variance": result.residual_variance,
+        "status": result.status,
+        "message": result.message,
+        "nfev": result.nfev,
+        "rounds": result.rounds,
+        "n_outliers": result.outlier_count,
+        "outlier_threshold_px": result.outlier_threshold_px,
+        "start": result.start,
+        "skipped_images": list(result.skipped_images),
+    }
+    units = {
+        "rms": "px",
+        "residual_variance": "px^2",
+        "outlier_threshold_px": "px",
+        "rvecs": "rad",
+        "tvecs": "mm",
+        "obs_board_points": "mm",
+        "obs_pixels": "px",
+        "residuals": "px",
+        "rms_image": "px",
+        "rms_image_half": "px",
+        "rms_half": "px",
+        "covariance": "parameter units squared (see free_names)",
+    }
+    return ModelRecord(
+        name=name or model.NAME,
+        registry_name=model.NAME,
+        params=np.array(model.params),
+        param_names=tuple(model.PARAM_NAMES),
+        config=model.config.to_dict(),
+        arrays=arrays,
+        attrs=attrs,
+        units=units,
+    )
+
+
+def model_from_record(record):
+    """The camera model of a stored :class:`~endomeasure.io.session.ModelRecord`."""
+    from endomeasure.models import model_from_dict
+
+    try:
+        return model_from_dict(
+            {
+                "model": record.registry_name,
+                "param_names": list(record.param_names),
+                "params": np.asarray(record.params).tolist(),
+                "config": record.config,
+            }
+        )
+    except (KeyError, ValueError) as exc:
+        raise BadInputError(f"stored model {record.name!r} cannot be read: {exc}") from None
+
+
+# ----- plots ------------------------------------------------------------------------------------
+
+
+def plot_residuals(result, out_dir: Path) -> list[str]:
+    """Residual vectors over the image and residual length against distance, one PNG each.
+
+    Returns the written paths.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    name = result.model_name
+    width, height = result.model.config.image_size
+    use = result.inliers & np.all(np.isfinite(result.residuals), axis=-1)
+    q, r = result.obs_pixels[use], result.residuals[use]
+    length = np.linalg.norm(r, axis=-1)
+    written = []
+
+    fig, ax = plt.subplots(figsize=(9, 9 * height / width + 0.8))
+    scale = max(float(np.percentile(length, 95)), 1e-12) / 25.0  # 95th percentile ~ 25 px
+    ax.quiver(q[:, 0], q[:, 1], r[:, 0], r[:, 1], length, angles="xy", scale_units="xy",
+              scale=scale, cmap="viridis", width=0.002)  # fmt: skip
+    ax.axvline(result.model.config.split - 0.5, color="0.6", lw=0.8, ls="--")
+    ax.set_xlim(-0.5, width - 0.5)
+    ax.set_ylim(height - 0.5, -0.5)
+    ax.set_aspect("equal")
+    ax.set_xlabel("u [px]")
+    ax.set_ylabel("v [px]")
+    ax.set_title(
+        f"{name}: residual vectors x{1.0 / scale:.0f} (RMS {result.rms:.3f} px, "
+        f"left {result.rms_half[0]:.3f}, right {result.rms_half[1]:.3f})"
+    )
+    path = out_dir / f"{name}-residual-vectors.png"
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    written.append(str(path))
+
+    depth = result.obs_points[use, 2]
+    half = result.obs_half[use]
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for h, colour in ((0, "tab:blue"), (1, "tab:orange")):
+        sel = half == h
+        ax.scatter(depth[sel], length[sel], s=4, alpha=0.5, color=colour, label=Half(h).label)
+    edges = np.linspace(depth.min(), depth.max(), 9)
+    idx = np.clip(np.digitize(depth, edges) - 1, 0, len(edges) - 2)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    rms_bin = [np.sqrt(np.mean(length[idx == k] ** 2)) if np.any(idx == k) else np.nan
+               for k in range(len(centres))]  # fmt: skip
+    ax.plot(centres, rms_bin, "k-o", ms=3, label="RMS per depth bin")
+    ax.set_xlabel("corner depth z [mm]")
+    ax.set_ylabel("residual length [px]")
+    ax.set_title(f"{name}: residual against distance")
+    ax.legend(loc="upper right")
+    path = out_dir / f"{name}-residual-vs-distance.png"
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    written.append(str(path))
+    return written
+
+
+# ----- the command ------------------------------------------------------------------------------
+
+
+def _summary(result, plots: list[str]) -> ModelSummary:
+    return ModelSummary(
+        name=result.model_name,
+        rms=result.rms,
+        rms_half=(float(result.rms_half[0]), float(result.rms_half[1])),
+        n_images=len(result.image_names),
+        n_corners=result.n_inliers,
+        n_outliers=result.outlier_count,
+        worst_images=result.worst_images(3),
+        params=result.model.named_params(),
+        std=result.named_std(),
+        correlations=result.strongest_correlations(5),
+        residual_sigma=float(np.sqrt(result.residual_variance)),
+        status=result.status,
+        nfev=result.nfev,
+        start=result.start,
+        plots=plots,
+    )
+
+
+def _read_seed(path: str | Path | None):
+    if path is None:
+        return None
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise BadInputError(f"cannot read the seed model ({exc})", path=str(path)) from None
+
+
+def calibrate_session(
+    session: str | Path,
+    model: str = "all",
+    glass_index: float | None = None,
+    free_index: bool = False,
+    seed: str | Path | None = None,
+    plot_dir: str | Path | None = None,
+) -> CalibrateReport:
+    """Calibrate the requested model(s) from a session's detections and store them.
+
+    Parameters
+    ----------
+    session : path
+    model : {'pinhole', 'raytrace', 'all'}
+    glass_index : float, optional
+        Prism glass index for ``raytrace`` (default N-BK7, 1.5168).
+    free_index : bool
+        Estimate the glass index too.
+    seed : path, optional
+        JSON file of a ``raytrace`` model with nominal design values.
+    plot_dir : path, optional
+        Where to write residual plots (PNG).
+
+    Returns
+    -------
+    CalibrateReport
+        ``refused`` names the models whose calibration was refused (not stored).
+    """
+    from endomeasure.io.session import edit_session
+    from endomeasure.solvers.calibrate import CalibrationOptions, calibrate
+
+    if model not in MODEL_CHOICES:
+        raise BadInputError(f"unknown model {model!r}; choose one of {', '.join(MODEL_CHOICES)}")
+    if glass_index is not None and not glass_index > 1.0:
+        raise BadInputError(f"the glass index must exceed 1, not {glass_index}")
+    names: Sequence[str] = _ORDER if model == "all" else (model,)
+    options = CalibrationOptions(
+        glass_index=glass_index, free_index=free_index, seed=_read_seed(seed)
+    )
+    views, boards, image_size, split = load_calibration_inputs(session)
+    results, refused = {}, {}
+    pinhole = None
+    for name in names:
+        try:
+            res = calibrate(name, views, boards, image_size, split, options, start=pinhole)
+        except CalibrationError as exc:
+            refused[name] = exc.one_line()
+            continue
+        results[name] = res
+        if name == "pinhole":
+            pinhole = res
+    if results:
+        with edit_session(session) as writer:
+            for name, res in results.items():
+                writer.write_model(result_to_record(res, name))
+    summaries = {}
+    for name, res in results.items():
+        plots = plot_residuals(res, Path(plot_dir)) if plot_dir is not None else []
+        summaries[name] = _summary(res, plots)
+    return CalibrateReport(str(session), tuple(image_size), int(split), len(views),
+                           summaries, refused)  # fmt: skip
+
+
+def export_session_model(session: str | Path, name: str, fmt: str, out: str | Path) -> Path:
+    """``endomeasure export``: write a stored model (and its calibration figures) to a file."""
+    from endomeasure.io.export import export_model
+    from endomeasure.io.session import open_session
+
+    with open_session(session) as s:
+        record = s.model(name)
+    model = model_from_record(record)
+    extras = None
+    if "covariance" in record.arrays and "free_names" in record.arrays:
+        names = [str(n) for n in record.arrays["free_names"]]
+        cov = np.asarray(record.arrays["covariance"], dtype=np.float64)
+        extras = {
+            "free_names": names,
+            "std": np.sqrt(np.diag(cov)).tolist(),
+            "covariance": cov.tolist(),
+            "rms_px": float(record.attrs.get("rms", float("nan"))),
+            "rms_half_px": np.asarray(record.arrays.get("rms_half", [])).tolist(),
+            "residual_variance_px2": float(record.attrs.get("residual_variance", float("nan"))),
+        }
+    return export_model(model, fmt, out, extras)

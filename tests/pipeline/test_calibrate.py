@@ -1,0 +1,171 @@
+"""``endomeasure calibrate`` and ``export`` on a session of synthetic detections."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from endomeasure import cli
+from endomeasure.conventions import Half
+from endomeasure.io.export import read_opencv_yaml
+from endomeasure.io.session import Detection, edit_session, open_session
+from endomeasure.models import model_from_dict
+from endomeasure.pipeline.calibrate import model_from_record
+from tests.solvers.calibration_data import (
+    BOARD_COLS,
+    BOARD_ROWS,
+    perturbed_raytrace_truth,
+    synthetic_views,
+)
+
+runner = CliRunner()
+NOISE_PX = 0.1
+
+
+def _spec(board_key: str) -> str:
+    return f"chessboard:{BOARD_COLS}x{BOARD_ROWS}:{board_key.removeprefix('sq')}"
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    truth = perturbed_raytrace_truth()
+    data = synthetic_views(truth, np.random.default_rng(21), n_images=12, noise_px=NOISE_PX)
+    path = tmp_path_factory.mktemp("cal") / "probe.h5"
+    with edit_session(path, create=True) as w:
+        w.set_metadata(image_size=(640, 480), split=320)
+        for key in sorted({v.board for v in data.views}):
+            w.write_board(_spec(key), _spec(key))
+        dets = [
+            Detection(v.name, _spec(v.board), h, v.ids[h].astype(np.int32), v.pixels[h], 1.0, "")
+            for v in data.views
+            for h in Half
+        ]
+        w.write_detections(dets)
+    return path
+
+
+@pytest.fixture(scope="module")
+def calibrated(session, tmp_path_factory):
+    plots = tmp_path_factory.mktemp("plots")
+    result = runner.invoke(
+        cli.app, ["calibrate", str(session), "--model", "all", "--json", "--plot", str(plots)]
+    )
+    return result, plots
+
+
+def test_calibrate_all_prints_one_json_document(calibrated):
+    result, _ = calibrated
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.stdout)
+    assert set(doc["models"]) == {"pinhole", "raytrace"}
+    ray = doc["models"]["raytrace"]
+    # the raytrace fit reaches the detection noise (per-axis sigma) within 10 %
+    assert ray["residual_sigma_px"] == pytest.approx(NOISE_PX, rel=0.10)
+    assert doc["models"]["pinhole"]["rms_px"] > ray["rms_px"]
+    assert doc["refused"] == {}
+
+
+def test_results_are_stored_with_everything_needed_later(calibrated, session):
+    with open_session(session) as s:
+        assert {"pinhole", "raytrace"} <= set(s.model_names())
+        rec = s.model("raytrace")
+    free = [str(n) for n in rec.arrays["free_names"]]
+    cov = rec.arrays["covariance"]
+    assert cov.shape == (len(free), len(free))
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), rec.arrays["std"])
+    assert rec.units["rms"] == "px"
+    # the stored residuals are reproduced by the stored model and poses
+    model = model_from_record(rec)
+    from endomeasure.geometry.rotations import rotation_matrix
+
+    img = rec.arrays["obs_image"]
+    R = rotation_matrix(rec.arrays["rvecs"])[img]
+    P = np.einsum("nij,nj->ni", R, rec.arrays["obs_board_points"]) + rec.arrays["tvecs"][img]
+    for h in Half:
+        sel = rec.arrays["obs_half"] == h
+        q = model.project(P[sel], h).pixels
+        ok = np.all(np.isfinite(q), axis=-1)
+        assert ok.mean() > 0.99
+        np.testing.assert_allclose(
+            q[ok] - rec.arrays["obs_pixels"][sel][ok], rec.arrays["residuals"][sel][ok], atol=1e-6
+        )
+
+
+def test_residual_plots_are_written(calibrated):
+    _, plots = calibrated
+    names = sorted(p.name for p in plots.iterdir())
+    assert names == [
+        "pinhole-residual-vectors.png",
+        "pinhole-residual-vs-distance.png",
+        "raytrace-residual-vectors.png",
+        "raytrace-residual-vs-distance.png",
+    ]
+    assert all((plots / n).stat().st_size > 10_000 for n in names)
+
+
+@pytest.mark.parametrize("name", ["pinhole", "raytrace"])
+def test_export_json_round_trip(calibrated, session, tmp_path, name):
+    out = tmp_path / f"{name}.json"
+    result = runner.invoke(cli.app, ["export", str(session), str(out), "--model", name])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(out.read_text())
+    back = model_from_dict(doc)
+    with open_session(session) as s:
+        rec = s.model(name)
+    np.testing.assert_array_equal(back.params, rec.params)
+    assert back.config.to_dict() == rec.config
+    assert doc["calibration"]["free_names"] == [str(n) for n in rec.arrays["free_names"]]
+
+
+def test_export_opencv_yaml_reads_back_with_the_same_numbers(calibrated, session, tmp_path):
+    out = tmp_path / "pinhole.yml"
+    result = runner.invoke(
+        cli.app, ["export", str(session), str(out), "--model", "pinhole", "--format", "opencv-yaml"]
+    )
+    assert result.exit_code == 0, result.output
+    with open_session(session) as s:
+        model = model_from_record(s.model("pinhole"))
+    fs = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)  # plain OpenCV, no endomeasure
+    M1, D2, R, T = (fs.getNode(k).mat() for k in ("M1", "D2", "R", "T"))
+    fs.release()
+    assert M1[0, 0] == model.left_fx and M1[0, 2] == model.left_cx
+    np.testing.assert_array_equal(D2.ravel(), model.right[[4, 5, 6, 7, 8]])
+    Rm, t = model.pose_right_left()
+    np.testing.assert_array_equal(R, Rm)
+    np.testing.assert_array_equal(T.ravel(), t)
+    back = read_opencv_yaml(out)
+    assert back["split"] == 320 and back["image_width"] == 640
+
+
+def test_export_yaml_of_raytrace_is_refused(calibrated, session, tmp_path):
+    result = runner.invoke(
+        cli.app,
+        ["export", str(session), str(tmp_path / "r.yml"), "--model", "raytrace",
+         "--format", "opencv-yaml"],
+    )  # fmt: skip
+    assert result.exit_code == 2
+    assert "only pinhole" in result.stderr
+
+
+def test_refusal_exits_1_and_stores_nothing(tmp_path):
+    truth = perturbed_raytrace_truth()
+    data = synthetic_views(truth, np.random.default_rng(22), n_images=3)
+    path = tmp_path / "few.h5"
+    with edit_session(path, create=True) as w:
+        w.set_metadata(image_size=(640, 480), split=320)
+        for key in sorted({v.board for v in data.views}):
+            w.write_board(_spec(key), _spec(key))
+        w.write_detections(
+            Detection(v.name, _spec(v.board), h, v.ids[h].astype(np.int32), v.pixels[h])
+            for v in data.views
+            for h in Half
+        )
+    result = runner.invoke(cli.app, ["calibrate", str(path), "--model", "pinhole"])
+    assert result.exit_code == 1
+    assert "too few usable calibration images" in result.stderr
+    with open_session(path) as s:
+        assert s.model_names() == []
