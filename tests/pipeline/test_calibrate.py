@@ -7,6 +7,12 @@ import json
 import cv2
 import numpy as np
 import pytest
+from tests.solvers.calibration_data import (
+    BOARD_COLS,
+    BOARD_ROWS,
+    perturbed_raytrace_truth,
+    synthetic_views,
+)
 from typer.testing import CliRunner
 
 from endomeasure import cli
@@ -15,12 +21,6 @@ from endomeasure.io.export import read_opencv_yaml
 from endomeasure.io.session import Detection, edit_session, open_session
 from endomeasure.models import model_from_dict
 from endomeasure.pipeline.calibrate import model_from_record
-from tests.solvers.calibration_data import (
-    BOARD_COLS,
-    BOARD_ROWS,
-    perturbed_raytrace_truth,
-    synthetic_views,
-)
 
 runner = CliRunner()
 NOISE_PX = 0.1

@@ -1,0 +1,144 @@
+"""Calibration benchmark: wall time of each model's calibration against cv2.stereoCalibrate.
+
+Usage::
+
+    python bench/bench_calibrate.py [--session S.h5] [--images N] [--repeat R] [--no-write]
+
+Detections come from a session (``--session``, e.g. a sample session after
+``endomeasure detect``) or, by default, from N synthetic views of the tests' perturbed
+raytrace design with 0.1 px noise (``tests/solvers/calibration_data.py``). Timed, in one
+run, on the same detections, median of R runs:
+
+- peer: ``cv2.stereoCalibrate`` with ``flags=0`` from scratch (no intrinsic guess), on
+  the corners seen in both halves of each image (what it accepts), right half in its
+  own coordinates;
+- ``calibrate('pinhole', ...)`` from scratch (per-half OpenCV, joint fit, outliers,
+  covariance);
+- ``calibrate('raytrace', ...)`` from scratch (the whole chain including the pinhole).
+
+Writes the "calibrate" section of docs/benchmarks.md (target: raytrace <= 3x the peer)
+unless ``--no-write``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import re
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # for tests.solvers.calibration_data
+
+from endomeasure.solvers.calibrate import calibrate  # noqa: E402
+
+DOC = ROOT / "docs" / "benchmarks.md"
+TARGET_RATIO = 3.0
+
+
+def _synthetic(n_images: int):
+    from tests.solvers.calibration_data import perturbed_raytrace_truth, synthetic_views
+
+    truth = perturbed_raytrace_truth()
+    data = synthetic_views(truth, np.random.default_rng(7), n_images=n_images, noise_px=0.1)
+    return data.views, data.boards, (640, 480), 320, f"{n_images} synthetic views, 0.1 px noise"
+
+
+def _stereo_calibrate(views, boards, image_size, split):
+    import cv2
+
+    objp, ql, qr = [], [], []
+    for v in views:
+        common = np.intersect1d(v.ids[0], v.ids[1])
+        if common.size < 6:
+            continue
+        il = np.searchsorted(v.ids[0], common, sorter=np.argsort(v.ids[0]))
+        ir = np.searchsorted(v.ids[1], common, sorter=np.argsort(v.ids[1]))
+        il = np.argsort(v.ids[0])[il]
+        ir = np.argsort(v.ids[1])[ir]
+        objp.append(boards[v.board][common].astype(np.float32))
+        ql.append(v.pixels[0][il].astype(np.float32))
+        qr.append((v.pixels[1][ir] - [split, 0.0]).astype(np.float32))
+    size = (max(split, image_size[0] - split), image_size[1])
+    rms = cv2.stereoCalibrate(objp, ql, qr, None, None, None, None, size, flags=0)[0]
+    return float(rms), sum(len(o) for o in objp)
+
+
+def _median_time(fn, repeat):
+    times, out = [], None
+    for _ in range(repeat):
+        t = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times)), out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--session")
+    ap.add_argument("--images", type=int, default=16)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--no-write", action="store_true")
+    args = ap.parse_args(argv)
+    if args.session:
+        from endomeasure.pipeline.calibrate import load_calibration_inputs
+
+        views, boards, size, split = load_calibration_inputs(args.session)
+        what = f"session {args.session} ({len(views)} views)"
+    else:
+        views, boards, size, split, what = _synthetic(args.images)
+    n_corners = sum(len(v.ids[0]) + len(v.ids[1]) for v in views)
+
+    t_cv, (cv_rms, cv_corners) = _median_time(
+        lambda: _stereo_calibrate(views, boards, size, split), args.repeat
+    )
+    t_ph, ph = _median_time(lambda: calibrate("pinhole", views, boards, size, split), args.repeat)
+    t_rt, rt = _median_time(lambda: calibrate("raytrace", views, boards, size, split), args.repeat)
+    rows = [
+        ("`cv2.stereoCalibrate`, flags=0 (peer)", t_cv, cv_corners, cv_rms, "RMS per axis pair"),
+        ("`calibrate` pinhole", t_ph, ph.n_inliers, ph.rms, ""),
+        ("`calibrate` raytrace (whole chain)", t_rt, rt.n_inliers, rt.rms, ""),
+    ]
+    ratio = t_rt / t_cv
+    lines = [
+        "<!-- begin calibrate -->",
+        "## `calibrate`",
+        "",
+        f"Median wall time of {args.repeat} runs each on the same detections ({what}, "
+        f"{n_corners} corner observations), measured by `bench/bench_calibrate.py` in one run "
+        f"(Python {platform.python_version()}, {platform.machine()}). The peer gets the "
+        "corners seen in both halves of an image (all it accepts); the endomeasure "
+        "calibrations use every corner of both halves.",
+        "",
+        "| what | median wall time | ratio to peer | corners used | RMS px |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for name, t, n, rms, _ in rows:
+        lines.append(f"| {name} | {t:.2f} s | {t / t_cv:.2f} | {n} | {rms:.3f} |")
+    verdict = "meets" if ratio <= TARGET_RATIO else "does not meet"
+    lines += [
+        "",
+        f"Target: raytrace at most {TARGET_RATIO:g}x the peer; this run {verdict} it "
+        f"({ratio:.2f}x). The peer's RMS is its own figure (OpenCV's reprojection RMS).",
+        "<!-- end calibrate -->",
+    ]
+    section = "\n".join(lines)
+    print(section)
+    if not args.no_write:
+        text = DOC.read_text() if DOC.exists() else "# Benchmarks\n"
+        pattern = re.compile(r"<!-- begin calibrate -->.*?<!-- end calibrate -->", re.S)
+        text = (
+            pattern.sub(section, text)
+            if pattern.search(text)
+            else text.rstrip() + "\n\n" + section + "\n"
+        )
+        DOC.write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
