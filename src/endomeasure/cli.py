@@ -357,6 +357,59 @@ def detect(
     raise typer.Exit(report.exit_code)
 
 
+@command("simulate")
+def simulate(
+    out_dir: Annotated[
+        Path, typer.Argument(help="Output folder (created if missing).", show_default=False)
+    ],
+    preset: Annotated[
+        str, typer.Option("--preset", help="Built-in preset name or a preset JSON file.")
+    ] = "default",
+    sets: Annotated[
+        str, typer.Option("--set", help="Comma-separated image sets: calib, test, scene.")
+    ] = "calib,test,scene",
+    seed: Annotated[int, typer.Option("--seed", help="Seed of poses and noise (>= 0).")] = 0,
+    noise_free: Annotated[
+        bool, typer.Option("--noise-free", help="Render without shot and read noise.")
+    ] = False,
+    json_output: JsonOption = False,
+) -> None:
+    """Render prism-stereo image sets with exact ground truth (the digital twin)."""
+    from endomeasure.pipeline.simulate import simulate as run
+
+    console = _stderr_console()
+    with _progress(console, "rendering", enabled=not json_output) as on_progress:
+        report = run(
+            out_dir,
+            preset,
+            sets,
+            seed=seed,
+            noise_free=noise_free,
+            on_progress=(
+                None if on_progress is None else lambda done, total, _: on_progress(done, total)
+            ),
+        )
+    if json_output:
+        _print_json(report.to_dict())
+        return
+
+    from rich.table import Table
+
+    table = Table(title=f"simulate {report.preset} (seed {report.seed})", title_justify="left")
+    for column in ("set", "images", "board whole in both halves"):
+        table.add_column(column, justify="left" if column == "set" else "right")
+    for name, info in report.sets.items():
+        visible = info["fully_visible"]
+        whole = "-" if visible is None else f"{visible}/{info['images']}"
+        table.add_row(name, str(info["images"]), whole)
+    console.print(table)
+    noise = "noise-free" if report.noise_free else "with sensor noise"
+    console.print(
+        f"{report.out_dir}: images {noise}, split column {report.split}, ground truth in "
+        f"*.json next to each image and simulation.json; {report.seconds:.1f} s"
+    )
+
+
 @command("calibrate")
 def calibrate(
     session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],

@@ -162,22 +162,26 @@ class Chessboard:
 def _value_noise(grid: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Smoothly interpolated lattice noise: ``grid`` sampled at fractional ``(x, y)``.
 
-    Coordinates wrap around the grid, so the texture is defined everywhere.
+    ``grid`` is square with a power-of-two side, so coordinates wrap around it with a
+    bit mask and the texture is defined everywhere.
     """
-    ny, nx = grid.shape
+    n = grid.shape[0]
+    flat = grid.ravel()
     x0 = np.floor(x)
     y0 = np.floor(y)
     fx = x - x0
     fy = y - y0
     fx = fx * fx * (3.0 - 2.0 * fx)  # smoothstep: C1 across lattice lines
     fy = fy * fy * (3.0 - 2.0 * fy)
-    ix = np.mod(x0.astype(np.int64), nx)
-    iy = np.mod(y0.astype(np.int64), ny)
-    ix1 = np.mod(ix + 1, nx)
-    iy1 = np.mod(iy + 1, ny)
-    top = grid[iy, ix] * (1 - fx) + grid[iy, ix1] * fx
-    bottom = grid[iy1, ix] * (1 - fx) + grid[iy1, ix1] * fx
-    return top * (1 - fy) + bottom * fy
+    ix = x0.astype(np.int64) & (n - 1)
+    iy = (y0.astype(np.int64) & (n - 1)) * n
+    ix1 = (ix + 1) & (n - 1)
+    iy1 = (iy + n) & (n * n - 1)
+    top = flat.take(iy + ix)
+    top += (flat.take(iy + ix1) - top) * fx
+    bottom = flat.take(iy1 + ix)
+    bottom += (flat.take(iy1 + ix1) - bottom) * fx
+    return top + (bottom - top) * fy
 
 
 # (cell along the arc, cell along the axis, weight) of the texture's noise octaves, mm:
@@ -232,7 +236,7 @@ class MetalCylinder:
     @cached_property
     def _lattices(self) -> list[np.ndarray]:
         rng = np.random.default_rng(self.texture_seed)
-        return [rng.uniform(-1.0, 1.0, size=(_GRID, _GRID)) for _ in _OCTAVES]
+        return [rng.uniform(-1.0, 1.0, size=(_GRID, _GRID)).astype(np.float32) for _ in _OCTAVES]
 
     def surface_points(self, s: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Surface-frame points of arc length ``s`` and height ``y``, shape (..., 3), mm."""
@@ -254,16 +258,20 @@ class MetalCylinder:
 
     def texture(self, s: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Diffuse albedo at surface coordinates (arc length, height), mm."""
-        noise = np.zeros(np.shape(s))
+        noise = np.zeros(np.shape(s), dtype=np.result_type(s, np.float32))
         for (cell_s, cell_y, weight), grid in zip(_OCTAVES, self._lattices, strict=True):
             noise += weight * _value_noise(grid, s / cell_s, y / cell_y)
         albedo = self.albedo * (1.0 + self.texture_contrast * noise)
         # marks: dark discs with a soft rim (anti-aliasing is the renderer's job; the rim
         # is the physical edge of a punched or etched mark)
+        reach = self.mark_radius_mm * 1.2
         for ms, my in self.marks_sy:
-            r = np.hypot(s - ms, y - my)
+            near = np.flatnonzero((np.abs(s - ms) < reach) & (np.abs(y - my) < reach))
+            if near.size == 0:
+                continue
+            r = np.hypot(s[near] - ms, y[near] - my)
             edge = np.clip((r - self.mark_radius_mm) / (0.15 * self.mark_radius_mm) + 0.5, 0, 1)
-            albedo = self.mark_albedo + (albedo - self.mark_albedo) * edge
+            albedo[near] = self.mark_albedo + (albedo[near] - self.mark_albedo) * edge
         return albedo
 
     def hit(self, o: tuple[np.ndarray, ...], d: tuple[np.ndarray, ...]) -> Hit:
@@ -286,7 +294,7 @@ class MetalCylinder:
         sx, sy, sz = (lo[k] + t * ld[k] for k in range(3))
         s_arc = r0 * np.arctan2(sx, r0 - sz)
         albedo = np.zeros_like(t)
-        albedo[hit] = self.texture(s_arc[hit].astype(np.float64), sy[hit].astype(np.float64))
+        albedo[hit] = self.texture(s_arc[hit], sy[hit])
         # outward normal (x, 0, z - r) / r in the surface frame, to the camera frame
         ux, uz = sx / r0, (sz - r0) / r0
         normal = tuple(ux * R[k, 0] + uz * R[k, 2] for k in range(3))
