@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 DEMO_DIR := out/demo
 DEMO_SESSION := $(DEMO_DIR)/demo.h5
 
-.PHONY: install test demo bench lint
+.PHONY: install test demo bench lint samples
 
 install: $(STAMP)
 
@@ -39,7 +39,12 @@ demo: install
 	$(VENV)/bin/endomeasure info $(DEMO_SESSION)
 
 bench: install
-	@for script in bench/*.py; do echo "== $$script"; $(PY) $$script || exit $$?; done
+	@for script in bench/bench_*.py; do echo "== $$script"; $(PY) $$script || exit $$?; done
 
 lint: install
 	$(VENV)/bin/ruff check src tests bench
+
+# The committed sample set (calibration + test + scene, with ground truth): the default
+# preset, seed 0. Deterministic: rerunning it reproduces the files byte for byte.
+samples: install
+	$(VENV)/bin/endomeasure simulate sample_sessions --preset default --set calib,test,scene --seed 0
