@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import platform
-import re
 import sys
 import time
 from pathlib import Path
@@ -34,9 +33,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # for tests.solvers.calibration_data
 
+from _common import write_section  # noqa: E402
 from endomeasure.solvers.calibrate import calibrate  # noqa: E402
 
-DOC = ROOT / "docs" / "benchmarks.md"
 TARGET_RATIO = 3.0
 
 
@@ -105,7 +104,6 @@ def main(argv=None) -> int:
     ]
     ratio = t_rt / t_cv
     lines = [
-        "<!-- begin calibrate -->",
         "## `calibrate`",
         "",
         f"Median wall time of {args.repeat} runs each on the same detections ({what}, "
@@ -124,19 +122,12 @@ def main(argv=None) -> int:
         "",
         f"Target: raytrace at most {TARGET_RATIO:g}x the peer; this run {verdict} it "
         f"({ratio:.2f}x). The peer's RMS is its own figure (OpenCV's reprojection RMS).",
-        "<!-- end calibrate -->",
     ]
     section = "\n".join(lines)
-    print(section)
-    if not args.no_write:
-        text = DOC.read_text() if DOC.exists() else "# Benchmarks\n"
-        pattern = re.compile(r"<!-- begin calibrate -->.*?<!-- end calibrate -->", re.S)
-        text = (
-            pattern.sub(section, text)
-            if pattern.search(text)
-            else text.rstrip() + "\n\n" + section + "\n"
-        )
-        DOC.write_text(text)
+    if args.no_write:
+        print(section)
+    else:
+        write_section("calibrate", section)
     return 0
 
 

@@ -7,7 +7,6 @@ Writes the ``cli-startup`` section of docs/benchmarks.md. Run with ``make bench`
 from __future__ import annotations
 
 import platform
-import re
 import shutil
 import statistics
 import subprocess
@@ -15,10 +14,10 @@ import sys
 import time
 from pathlib import Path
 
+from _common import write_section
+
 RUNS = 15
 TARGET_S = 0.3
-ROOT = Path(__file__).resolve().parents[1]
-DOC = ROOT / "docs" / "benchmarks.md"
 SECTION = "cli-startup"
 
 
@@ -30,16 +29,6 @@ def wall_times(argv: list[str], runs: int = RUNS) -> list[float]:
         subprocess.run(argv, capture_output=True, check=True)
         times.append(time.perf_counter() - start)
     return times
-
-
-def replace_section(text: str, name: str, body: str) -> str:
-    """Replace (or append) the block between this section's begin/end markers."""
-    begin, end = f"<!-- begin {name} -->", f"<!-- end {name} -->"
-    block = f"{begin}\n{body.rstrip()}\n{end}"
-    pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end), re.S)
-    if pattern.search(text):
-        return pattern.sub(lambda _: block, text)
-    return text.rstrip() + "\n\n" + block + "\n"
 
 
 def main() -> None:
@@ -64,9 +53,7 @@ heavy imports (numpy, cv2, scipy, h5py, matplotlib) happen inside the commands;
 
 Target: under {TARGET_S * 1e3:.0f} ms; this run {verdict} it.
 """
-    text = DOC.read_text() if DOC.exists() else "# Benchmarks\n"
-    DOC.write_text(replace_section(text, SECTION, body))
-    print(body)
+    write_section(SECTION, body)
 
 
 if __name__ == "__main__":
