@@ -159,14 +159,11 @@ def _detect_half(
         quality = HalfQuality(float("nan"), float("nan"), float("nan"))
         return HalfDetection(half, empty_ids, empty_pixels, quality, f"half only {width} px wide")
     quality = half_quality(gray)
-    if quality.brightness < TOO_DARK_LEVEL:
-        return HalfDetection(
-            half,
-            empty_ids,
-            empty_pixels,
-            quality,
-            f"too dark (mean grey level {quality.brightness:.0f} of 255)",
-        )
+    # Darkness and contrast only explain a failure; they never pre-empt a detection (a
+    # small board on a dark background gives a dark mean but is perfectly detectable).
+    if quality.brightness < TOO_DARK_LEVEL and quality.contrast < MIN_CONTRAST:
+        failure = f"too dark (mean grey level {quality.brightness:.0f} of 255)"
+        return HalfDetection(half, empty_ids, empty_pixels, quality, failure)
     if quality.contrast < MIN_CONTRAST:
         return HalfDetection(
             half,
