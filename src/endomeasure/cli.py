@@ -502,3 +502,401 @@ def export(
         _print_json({"session": str(session), "model": model, "format": fmt, "out": str(path)})
         return
     _stderr_console().print(f"{model} from {session} written to {path} ({fmt})")
+
+
+@command("measure")
+def measure(
+    session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],
+    model: Annotated[
+        str,
+        typer.Option("--model", help="Calibrated model (with --board-test also 'all')."),
+    ] = "raytrace",
+    image: Annotated[
+        str | None, typer.Option("--image", help="Name of the image the points are on.")
+    ] = None,
+    left: Annotated[
+        list[str] | None,
+        typer.Option("--left", help="A point in the left half, U,V px (repeat per point)."),
+    ] = None,
+    right: Annotated[
+        list[str] | None,
+        typer.Option("--right", help="The same point in the right half, U,V px (repeat)."),
+    ] = None,
+    kind: Annotated[
+        str, typer.Option("--kind", help="length, point-line, depth, area or polyline.")
+    ] = "length",
+    warn_percent: Annotated[
+        float,
+        typer.Option(
+            "--warn-percent",
+            help="Warn when the predicted 95% error exceeds this percentage of the value.",
+        ),
+    ] = 5.0,
+    sigma: Annotated[
+        float | None,
+        typer.Option("--sigma", help="Image noise, px (default: from the calibration residuals)."),
+    ] = None,
+    board_test: Annotated[
+        bool,
+        typer.Option("--board-test", help="Measure every test image of a known board instead."),
+    ] = False,
+    zone_mm: Annotated[
+        float, typer.Option("--zone-mm", help="Board test: width of the distance zones, mm.")
+    ] = 5.0,
+    plot: Annotated[
+        Path | None, typer.Option("--plot", help="Board test: PNG of the errors (paper Fig. 4).")
+    ] = None,
+    json_output: JsonOption = False,
+) -> None:
+    """Triangulate points and measure them with a predicted +-, or run the board test.
+
+    A measurement: --image, one --left and one --right per point, --kind. It is stored
+    in the session with its uncertainty (unscented transform of the image noise and the
+    calibration covariance). --board-test: x-/y-segments, point-to-plane distances and
+    square areas on every test image, mean error and std per zone, kind and model.
+    """
+    if board_test:
+        from endomeasure.pipeline.measure import board_test as run_board_test
+
+        console = _stderr_console()
+        with _progress(console, "board test", enabled=not json_output) as on_progress:
+            report = run_board_test(
+                session, model if model else "all", zone_mm, plot, on_progress=on_progress
+            )
+        if json_output:
+            _print_json(report.to_dict())
+            return
+        _render_board_test(console, report)
+        return
+
+    from endomeasure.errors import BadInputError
+    from endomeasure.pipeline.measure import measure_points, parse_pixel
+
+    if image is None:
+        raise BadInputError("a measurement needs --image NAME", hint="or use --board-test")
+    if not left:
+        raise BadInputError("a measurement needs its points: --left U,V --right U,V per point")
+    report = measure_points(
+        session,
+        model,
+        image,
+        [parse_pixel(t) for t in left],
+        None if not right else [parse_pixel(t) for t in right],
+        kind,
+        warn_percent=warn_percent,
+        sigma=sigma,
+    )
+    if json_output:
+        _print_json(report.to_dict())
+        return
+    _render_measurement(_stderr_console(), report)
+
+
+def _render_measurement(console: Console, r: Any) -> None:
+    from rich.table import Table
+
+    table = Table(title=f"{r.kind} on {r.image} ({r.model})", title_justify="left")
+    for column in (
+        "point",
+        "left px",
+        "right px",
+        "x mm",
+        "y mm",
+        "z mm",
+        "ray gap mm",
+        "reproj. RMS px",
+    ):
+        table.add_column(column, justify="right")
+    for i, p in enumerate(r.points, 1):
+        table.add_row(
+            str(i),
+            "{:.2f},{:.2f}".format(*p.left),
+            "{:.2f},{:.2f}".format(*p.right),
+            *(f"{v:.4f}" for v in p.xyz),
+            f"{p.gap_mm:.4f}",
+            f"{p.rms_px:.3f}",
+        )
+    console.print(table)
+    console.print(
+        f"[bold]{r.kind} = {r.value:.4f} {r.unit}[/bold]  +- {r.std:.4f} {r.unit} (1 sigma), "
+        f"+- {r.ci95:.4f} {r.unit} (95%), predicted bias {r.bias:+.4f} {r.unit}"
+    )
+    console.print(
+        f"uncertainty: image noise {r.std_image:.4f}, calibration {r.std_calibration:.4f} "
+        f"{r.unit} (sigma {r.sigma_px:.4f} px from {r.sigma_source}; {r.method.upper()})"
+    )
+    if r.warning:
+        console.print(
+            f"[bold red]WARNING: not accurate enough: the predicted 95% error is "
+            f"{r.relative_percent:.1f}% of the value (threshold {r.warn_percent:g}%)[/bold red]"
+        )
+    else:
+        console.print(f"accuracy index {r.relative_percent:.2f}% (threshold {r.warn_percent:g}%)")
+    if r.record:
+        console.print(f"stored as measurement {r.record} in {r.session}")
+
+
+def _render_board_test(console: Console, report: Any) -> None:
+    from rich.table import Table
+
+    table = Table(
+        title=f"board test of {report.session} (zones of {report.zone_mm:g} mm)",
+        title_justify="left",
+    )
+    for column in (
+        "model",
+        "board",
+        "kind",
+        "zone z mm",
+        "n",
+        "mean error",
+        "std",
+        "mean % of true",
+    ):
+        table.add_column(
+            column, justify="left" if column in ("model", "board", "kind") else "right"
+        )
+    for row in report.summary_rows():
+        rel = row["relative_mean_percent"]
+        table.add_row(
+            row["model"],
+            row["board"].removeprefix("chessboard:"),
+            row["kind"],
+            f"{row['zone_start']:g}-{row['zone_end']:g}",
+            str(row["n"]),
+            f"{row['mean_error']:+.5f}",
+            f"{row['std_error']:.5f}",
+            "-" if rel is None else f"{rel:+.3f}",
+        )
+    console.print(table)
+    n_images = {name: len(m.images) for name, m in report.models.items()}
+    console.print(
+        "test images per model: "
+        + ", ".join(f"{k} {v}" for k, v in n_images.items())
+        + f"; stored in {report.session}"
+    )
+    if report.plot:
+        console.print(f"plot: {report.plot}")
+
+
+@command("predict-error")
+def predict_error(
+    session: Annotated[
+        Path | None,
+        typer.Argument(
+            help="Session file (.h5); optional with --map --model-file.", show_default=False
+        ),
+    ] = None,
+    model: Annotated[str, typer.Option("--model", help="Calibrated model.")] = "raytrace",
+    sigma: Annotated[
+        float | None,
+        typer.Option("--sigma", help="Image noise, px (default: from the calibration residuals)."),
+    ] = None,
+    rho_images: Annotated[
+        float, typer.Option("--rho-images", help="Correlation of a point's left/right errors.")
+    ] = 0.0,
+    rho_points: Annotated[
+        float, typer.Option("--rho-points", help="Correlation between different points' errors.")
+    ] = 0.0,
+    method: Annotated[str, typer.Option("--method", help="ut, linear or mc.")] = "ut",
+    samples: Annotated[
+        int | None, typer.Option("--samples", help="Monte Carlo samples (default 20000).")
+    ] = None,
+    no_calibration: Annotated[
+        bool,
+        typer.Option("--no-calibration", help="Leave the calibration covariance out."),
+    ] = False,
+    board_test: Annotated[
+        bool, typer.Option("--board-test", help="Predicted vs actual board-test errors.")
+    ] = False,
+    measurement: Annotated[
+        str | None, typer.Option("--measurement", help="Predict one stored measurement (id).")
+    ] = None,
+    map_mode: Annotated[
+        bool, typer.Option("--map", help="Predicted std of a template over the working volume.")
+    ] = False,
+    model_file: Annotated[
+        Path | None,
+        typer.Option("--model-file", help="Map: JSON model with nominal parameters."),
+    ] = None,
+    template: Annotated[
+        str,
+        typer.Option("--template", help="Map: x-segment, y-segment, z-segment, point-plane, area."),
+    ] = "x-segment",
+    size_mm: Annotated[float, typer.Option("--size-mm", help="Map: template size, mm.")] = 1.0,
+    depths: Annotated[
+        str, typer.Option("--depths", help="Map: START:STOP:STEP or z1,z2,... in mm.")
+    ] = "10:45:5",
+    grid: Annotated[
+        str, typer.Option("--grid", help="Map: NU,NV grid over the left half.")
+    ] = "24,18",
+    zone_mm: Annotated[
+        float | None, typer.Option("--zone-mm", help="Board test: zone width, mm.")
+    ] = None,
+    plot: Annotated[Path | None, typer.Option("--plot", help="PNG (board test or map).")] = None,
+    csv: Annotated[Path | None, typer.Option("--csv", help="Map: data as CSV.")] = None,
+    json_output: JsonOption = False,
+) -> None:
+    """Predict measurement errors (bias and std) by the unscented transform.
+
+    Modes: --board-test (predicted vs actual per zone and kind, paper Fig. 5),
+    --measurement ID (a stored measurement), --map (a template over the working volume;
+    also from --model-file with nominal parameters and no calibration).
+    """
+    from endomeasure.errors import BadInputError
+
+    modes = [board_test, measurement is not None, map_mode]
+    if sum(modes) != 1:
+        raise BadInputError("choose one mode: --board-test, --measurement ID or --map")
+    if session is None and not (map_mode and model_file is not None):
+        raise BadInputError("a session is needed (only --map --model-file works without one)")
+    console = _stderr_console()
+    calibration = not no_calibration
+    if board_test:
+        from endomeasure.pipeline.predict import predict_board_test
+
+        report = predict_board_test(
+            session,
+            model,
+            sigma=sigma,
+            rho_images=rho_images,
+            rho_points=rho_points,
+            method=method,
+            calibration=calibration,
+            zone_mm=zone_mm,
+            n_samples=samples,
+            plot=plot,
+        )
+        if json_output:
+            _print_json(report.to_dict())
+            return
+        _render_board_prediction(console, report)
+        return
+    if measurement is not None:
+        from endomeasure.pipeline.predict import predict_stored_measurement
+
+        r = predict_stored_measurement(
+            session,
+            measurement,
+            sigma=sigma,
+            rho_images=rho_images,
+            rho_points=rho_points,
+            method=method,
+            calibration=calibration,
+            n_samples=samples,
+        )
+        if json_output:
+            _print_json(r.to_dict())
+            return
+        console.print(
+            f"[bold]{r.measurement}: {r.kind} = {r.value:.4f} {r.unit}[/bold] ({r.model}); "
+            f"predicted bias {r.bias:+.4f}, std {r.std:.4f} {r.unit} (image {r.std_image:.4f}, "
+            f"calibration {r.std_calibration:.4f}), 95% +-{r.ci95:.4f} = "
+            f"{r.relative_percent:.2f}% of the value; {r.method.upper()}, "
+            f"sigma {r.sigma_px:.4f} px ({r.sigma_source}), rho images {r.rho_images:g}, "
+            f"rho points {r.rho_points:g}"
+        )
+        return
+    from endomeasure.pipeline.predict import predict_map
+
+    try:
+        n_u, n_v = (int(x) for x in grid.split(","))
+    except ValueError:
+        raise BadInputError(
+            f"cannot read the grid {grid!r}", hint="give NU,NV, e.g. 24,18"
+        ) from None
+    r = predict_map(
+        session,
+        model=model,
+        model_file=model_file,
+        template=template,
+        size_mm=size_mm,
+        depths=depths,
+        grid=(n_u, n_v),
+        sigma=sigma,
+        rho_images=rho_images,
+        rho_points=rho_points,
+        method=method,
+        calibration=calibration,
+        n_samples=samples,
+        plot=plot,
+        csv=csv,
+    )
+    if json_output:
+        _print_json(r.to_dict())
+        return
+    from rich.table import Table
+
+    unit = "mm^2" if r.template == "area" else "mm"
+    table = Table(
+        title=f"predicted error of a {r.size_mm:g} mm {r.template} ({r.model}, {r.source})",
+        title_justify="left",
+    )
+    for column in (
+        "z mm",
+        "points",
+        f"median std {unit}",
+        f"max std {unit}",
+        f"median bias {unit}",
+    ):
+        table.add_column(column, justify="right")
+    for d in r.per_depth:
+        table.add_row(
+            f"{d['z_mm']:g}",
+            str(d["n"]),
+            f"{d['std_median']:.5f}",
+            f"{d['std_max']:.5f}",
+            f"{d['bias_median']:+.5f}",
+        )
+    console.print(table)
+    console.print(
+        f"sigma {r.sigma_px:.4f} px ({r.sigma_source}), rho images {r.rho_images:g}, rho points "
+        f"{r.rho_points:g}, calibration covariance {'in' if r.calibration else 'not'} included; "
+        f"{r.method.upper()}"
+    )
+    for label, path in (("plot", r.plot), ("data", r.csv)):
+        if path:
+            console.print(f"{label}: {path}")
+
+
+def _render_board_prediction(console: Console, r: Any) -> None:
+    from rich.table import Table
+
+    table = Table(
+        title=f"predicted vs actual board-test errors ({r.model}, {r.method.upper()}, sigma "
+        f"{r.sigma_px:.4f} px from {r.sigma_source}, rho images {r.rho_images:g}, rho points "
+        f"{r.rho_points:g})",
+        title_justify="left",
+    )
+    for column in (
+        "board",
+        "kind",
+        "zone z mm",
+        "n",
+        "actual mean",
+        "predicted mean",
+        "actual std",
+        "predicted std",
+        "actual/predicted",
+        "in 2-sigma band",
+    ):
+        table.add_column(column, justify="left" if column in ("board", "kind") else "right")
+    for z in r.zones:
+        ratio = z["std_ratio"]
+        colour = "green" if ratio is not None and 0.75 <= ratio <= 1.25 else "yellow"
+        table.add_row(
+            z["board"].removeprefix("chessboard:"),
+            z["kind"],
+            f"{z['zone_start']:g}-{z['zone_end']:g}",
+            str(z["n"]),
+            f"{z['actual_mean']:+.5f}",
+            f"{z['predicted_mean']:+.5f}",
+            f"{z['actual_std']:.5f}",
+            f"{z['predicted_std']:.5f}",
+            "-" if ratio is None else f"[{colour}]{ratio:.2f}[/{colour}]",
+            f"{100 * z['within_band']:.0f}%",
+        )
+    console.print(table)
+    console.print(f"errors inside their predicted 2-sigma band: {100 * r.within_band:.1f}%")
+    if r.plot:
+        console.print(f"plot: {r.plot}")

@@ -1,0 +1,199 @@
+"""Figures of the board test, predicted errors and error maps (matplotlib, Agg).
+
+matplotlib is imported inside each function (it is slow to import and only the commands
+that draw need it). Each function writes one PNG and returns its path.
+
+- :func:`plot_board_test` — the paper's Fig. 4: one row per board-test kind; one column
+  per model with the error of every measurement at its place in the (left) image, and a
+  last column with mean +- std per distance zone for every model;
+- :func:`plot_predicted_vs_actual` — the paper's Fig. 5: per kind, the actual mean error
+  and standard deviation per zone against the predicted ones;
+- :func:`plot_error_map` — the predicted standard deviation of a template measurement
+  over the working volume, one panel per depth plane.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["plot_board_test", "plot_error_map", "plot_predicted_vs_actual"]
+
+_UNITS = {"x-segment": "mm", "y-segment": "mm", "point-plane": "mm", "area": "mm²"}
+_KINDS = ("x-segment", "y-segment", "point-plane", "area")
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return path
+
+
+def plot_board_test(results: Mapping[str, Any], zone_mm: float, path: str | Path) -> Path:
+    """The paper's Fig. 4 for every model of a board test.
+
+    Parameters
+    ----------
+    results : mapping of model name -> ModelBoardTest
+        (:mod:`endomeasure.pipeline.measure`): its ``table`` (kind, error, pixel_mean,
+        z_mean) and ``summary`` / ``summary_board``.
+    zone_mm : float, mm
+    path : path
+        PNG to write.
+    """
+    plt = _pyplot()
+    names = list(results)
+    n_cols = len(names) + 1
+    fig, axes = plt.subplots(
+        len(_KINDS),
+        n_cols,
+        figsize=(4.4 * n_cols, 3.4 * len(_KINDS)),
+        squeeze=False,
+        layout="constrained",
+    )
+    for r, kind in enumerate(_KINDS):
+        errors = [results[m].table.error[results[m].table.kind == kind] for m in names]
+        finite = np.concatenate([e[np.isfinite(e)] for e in errors] + [np.zeros(1)])
+        lim = float(np.percentile(np.abs(finite), 98)) or 1e-9
+        for c, m in enumerate(names):
+            ax = axes[r, c]
+            t = results[m].table
+            sel = (t.kind == kind) & np.isfinite(t.error)
+            sc = ax.scatter(
+                t.pixel_mean[sel, 0],
+                t.pixel_mean[sel, 1],
+                c=t.error[sel],
+                s=6,
+                cmap="coolwarm",
+                vmin=-lim,
+                vmax=lim,
+            )
+            ax.invert_yaxis()
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.set_title(f"{m}: {kind}", fontsize=9)
+            ax.set_xlabel("u [px] (left half)", fontsize=8)
+            ax.set_ylabel("v [px]", fontsize=8)
+            fig.colorbar(sc, ax=ax, shrink=0.8, label=f"error [{_UNITS[kind]}]")
+        ax = axes[r, -1]
+        for m in names:
+            s, boards = results[m].summary, results[m].summary_board
+            for board in dict.fromkeys(boards.tolist()):
+                sel = (s.kind == kind) & (boards == board)
+                centre = 0.5 * (s.zone_start[sel] + s.zone_end[sel])
+                ax.errorbar(
+                    centre,
+                    s.mean_error[sel],
+                    yerr=s.std_error[sel],
+                    marker="o",
+                    ms=3,
+                    capsize=3,
+                    label=f"{m} {board.split(':', 1)[-1]}",
+                )
+        ax.axhline(0.0, color="0.5", lw=0.8)
+        ax.set_title(f"{kind}: mean ± std per {zone_mm:g} mm zone", fontsize=9)
+        ax.set_xlabel("z [mm]", fontsize=8)
+        ax.set_ylabel(f"error [{_UNITS[kind]}]", fontsize=8)
+        ax.legend(fontsize=6)
+    fig.suptitle("board test: measurement errors (paper Fig. 4)")
+    return _save(fig, path)
+
+
+def plot_predicted_vs_actual(rows: Sequence[dict[str, Any]], path: str | Path) -> Path:
+    """The paper's Fig. 5: actual and predicted mean error and std per zone and kind.
+
+    Parameters
+    ----------
+    rows : sequence of dict
+        One per (board, kind, zone): ``board``, ``kind``, ``zone_start``, ``zone_end``,
+        ``actual_mean``, ``actual_std``, ``predicted_mean``, ``predicted_std``.
+    path : path
+    """
+    plt = _pyplot()
+    fig, axes = plt.subplots(
+        1, len(_KINDS), figsize=(4.2 * len(_KINDS), 3.6), squeeze=False, layout="constrained"
+    )
+    for c, kind in enumerate(_KINDS):
+        ax = axes[0, c]
+        sel = [r for r in rows if r["kind"] == kind]
+        for board in dict.fromkeys(r["board"] for r in sel):
+            rs = sorted((r for r in sel if r["board"] == board), key=lambda r: r["zone_start"])
+            z = np.array([0.5 * (r["zone_start"] + r["zone_end"]) for r in rs])
+            label = board.split(":", 1)[-1]
+            am = np.array([r["actual_mean"] for r in rs])
+            sd = np.array([r["actual_std"] for r in rs])
+            pm = np.array([r["predicted_mean"] for r in rs])
+            ps = np.array([r["predicted_std"] for r in rs])
+            line = ax.errorbar(
+                z, am, yerr=sd, marker="o", ms=3, capsize=3, ls="none", label=f"actual {label}"
+            )
+            colour = line[0].get_color()
+            ax.plot(z, pm, color=colour, lw=1, label=f"predicted mean {label}")
+            ax.fill_between(z, pm - ps, pm + ps, color=colour, alpha=0.2)
+        ax.axhline(0.0, color="0.5", lw=0.8)
+        ax.set_title(kind, fontsize=9)
+        ax.set_xlabel("z [mm]", fontsize=8)
+        ax.set_ylabel(f"error [{_UNITS[kind]}]", fontsize=8)
+        ax.legend(fontsize=6)
+    fig.suptitle("predicted (line ± band: mean ± std) vs actual (points ± bars) per zone (Fig. 5)")
+    return _save(fig, path)
+
+
+def plot_error_map(error_map, path: str | Path, n_panels: int = 4) -> Path:
+    """Predicted standard deviation of a template over the working volume.
+
+    Parameters
+    ----------
+    error_map : ErrorMap
+        From :func:`endomeasure.measure.predict.error_map`.
+    path : path
+    n_panels : int
+        Depth planes shown (spread over those in the map).
+    """
+    plt = _pyplot()
+    c = error_map.centres
+    depths = np.unique(np.round(c[:, 2], 6))
+    show = depths[
+        np.unique(np.linspace(0, depths.size - 1, min(n_panels, depths.size)).round().astype(int))
+    ]
+    fig, axes = plt.subplots(1, show.size + 1, figsize=(3.6 * (show.size + 1), 3.4), squeeze=False)
+    finite = error_map.std[np.isfinite(error_map.std)]
+    vmax = float(np.percentile(finite, 99)) if finite.size else 1.0
+    unit = "mm²" if error_map.template == "area" else "mm"
+    for k, z in enumerate(show):
+        ax = axes[0, k]
+        sel = np.isclose(c[:, 2], z) & np.isfinite(error_map.std)
+        sc = ax.scatter(
+            c[sel, 0], c[sel, 1], c=error_map.std[sel], s=8, cmap="viridis", vmin=0, vmax=vmax
+        )
+        ax.invert_yaxis()
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(f"z = {z:g} mm", fontsize=9)
+        ax.set_xlabel("x [mm]", fontsize=8)
+        ax.set_ylabel("y [mm]", fontsize=8)
+    fig.colorbar(sc, ax=axes[0, : show.size].tolist(), shrink=0.8, label=f"predicted std [{unit}]")
+    ax = axes[0, -1]
+    med = [np.nanmedian(error_map.std[np.isclose(c[:, 2], z)]) for z in depths]
+    hi = [np.nanmax(error_map.std[np.isclose(c[:, 2], z)]) for z in depths]
+    ax.plot(depths, med, "o-", ms=3, label="median over the field")
+    ax.plot(depths, hi, "s--", ms=3, label="worst in the field")
+    ax.set_xlabel("z [mm]", fontsize=8)
+    ax.set_ylabel(f"predicted std [{unit}]", fontsize=8)
+    ax.legend(fontsize=7)
+    fig.suptitle(f"predicted std of a {error_map.size_mm:g} mm {error_map.template}")
+    return _save(fig, path)
