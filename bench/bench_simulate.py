@@ -78,18 +78,30 @@ def bench_render() -> None:
     write_section("simulate-render", body)
 
 
+ORACLE_START_OFFSET_PX = 0.3
+"""The point-symmetry locator starts this far (in u and v) from the true pixel."""
+
+
 def _half_errors(image: np.ndarray, truth: dict, split: int, method: str):
     """Per half: detected - true pixel per corner (by truth id), or None if not found."""
     import cv2
 
     from endomeasure.features.boards import parse_board_spec
     from endomeasure.features.chessboard import canonical_grid, detect_chessboard
+    from endomeasure.simulate.oracle import symmetric_corners
 
     spec = parse_board_spec(truth["board_spec"])
     out = {}
     for half, (lo, hi) in (("left", (0, split)), ("right", (split, image.shape[1]))):
         gray = np.ascontiguousarray(image[:, lo:hi])
-        if method == "sb":
+        if method == "oracle":
+            true = truth["corners"]["pixels"][half]
+            if any(p is None for p in true):
+                out[half] = None
+                continue
+            start = np.array(true) - [lo, 0] + ORACLE_START_OFFSET_PX
+            pixels = symmetric_corners(gray, start, radius_px=4.0)
+        elif method == "sb":
             found, corners = cv2.findChessboardCornersSB(gray, (spec.cols, spec.rows))
             if not found:
                 out[half] = None
@@ -226,6 +238,7 @@ def bench_accuracy(noisy_dir: str | None, seed: int) -> None:
         simulate(clean, "default", sets, seed=seed, noise_free=True)
         rows = []
         for method, label in (
+            ("oracle", "renderer check: point-symmetry locator (simulate/oracle.py)"),
             ("sb", "cv2.findChessboardCornersSB"),
             ("default", "features default (SB + cornerSubPix)"),
         ):

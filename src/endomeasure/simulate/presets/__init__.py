@@ -1,0 +1,1 @@
+"""Built-in simulator presets (JSON data files, read with importlib.resources)."""
