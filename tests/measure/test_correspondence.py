@@ -1,0 +1,454 @@
+"""Correspondence search (measure/correspondence.py, measure/epipolar.py).
+
+Ground truth is independent of the search: the test renders its own images by tracing
+every pixel's ray (``model.rays``) to an analytic surface with an analytic texture, and
+the true match of a left pixel is ``model.project`` of the point its ray hits. The
+texture is a sum of sinusoids with wavelengths of several pixels, so sampling it at the
+pixel centres is free of aliasing and both halves see exactly the same signal.
+
+Planted failures: a band without texture, a band of stripes repeating along the
+epipolar direction, and points whose surface point the other half does not see.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from endomeasure.conventions import Half, Status
+from endomeasure.errors import BadInputError
+from endomeasure.measure.correspondence import (
+    MatchStatus,
+    estimate_noise,
+    find_match,
+    find_matches,
+)
+from endomeasure.measure.epipolar import SPACING_PX, epipolar_curve
+
+MATCH_RMS_TOL_PX = 0.2
+"""Acceptance of issue 9: matched pixels within 0.2 px RMS of the true match."""
+MATCH_MAX_TOL_PX = 0.6
+"""No single accepted match further than this from the truth (3x the RMS goal; the
+worst seen on these renders is about 0.35 px, on a plane tilted by 39 degrees)."""
+DEPTH_TOL_MM = 0.05
+"""z of the matched point against the surface: 0.2 px of disparity at 11 mm is ~0.03 mm."""
+RAY_GAP_TOL_MM = 0.01
+"""The model is exact, so the rays of a good match nearly meet (0.2 px ~ 0.01 mm here)."""
+CURVE_TOL_PX = 0.02
+"""A projected ray point lies on the sampled curve within the chord error of 0.4 px
+steps of a gently curved line."""
+NOISE_DN = 1.0
+"""Gaussian noise added to the renders before rounding to 8 bits, grey levels."""
+NOISE_ESTIMATE_TOL = 0.05
+"""Relative error of the robust noise estimate on pure noise over 200x200 pixels."""
+PLANE_DEPTH_MM = 11.0
+PLANE_NORMAL = (0.2, 0.1, -1.0)
+"""A plane about 12 degrees off facing the probe (it tilts the local map between halves)."""
+FLAT_BAND_MM = (-3.0, -1.4)
+STRIPE_BAND_MM = (1.4, 3.0)
+"""Bands (in the plane's y, mm) of the planted failures: no texture; vertical stripes."""
+STRIPE_PERIOD_MM = 0.4
+"""About 9 px at 11 mm: several periods along a curve of 20-40 px."""
+
+
+# ----- the test renderer -------------------------------------------------------------------
+
+
+def sinusoid_texture(rng: np.random.Generator, n: int = 40, wavelengths_mm=(0.2, 1.0)):
+    """Albedo in [0.2, 0.8]: a sum of ``n`` plane waves of random direction and phase."""
+    angle = rng.uniform(0.0, np.pi, n)
+    wavelength = np.exp(rng.uniform(*np.log(wavelengths_mm), n))
+    k = (2.0 * np.pi / wavelength)[:, None] * np.stack([np.cos(angle), np.sin(angle)], -1)
+    phase = rng.uniform(0.0, 2.0 * np.pi, n)
+    amp = rng.uniform(0.5, 1.0, n)
+    amp = amp / np.sqrt(np.sum(amp**2) / 2.0)  # unit RMS
+
+    def texture(xy: np.ndarray) -> np.ndarray:
+        return 0.5 + 0.12 * np.sum(amp * np.sin(xy @ k.T + phase), axis=-1)
+
+    return texture
+
+
+def planted_texture(base):
+    """``base`` with a flat band and a band of stripes along x (smooth 0.2 mm edges)."""
+
+    def band_weight(y, band):
+        lo, hi = band
+        inside = np.minimum(y - lo, hi - y)
+        return np.clip(inside / 0.2 + 0.5, 0.0, 1.0)  # 1 inside the band, 0 outside
+
+    def texture(xy: np.ndarray) -> np.ndarray:
+        out = base(xy)
+        w_flat = band_weight(xy[..., 1], FLAT_BAND_MM)
+        out = out + w_flat * (0.5 - out)
+        w_stripe = band_weight(xy[..., 1], STRIPE_BAND_MM)
+        stripes = 0.5 + 0.25 * np.sin(2.0 * np.pi * xy[..., 0] / STRIPE_PERIOD_MM)
+        return out + w_stripe * (stripes - out)
+
+    return texture
+
+
+class Plane:
+    """A textured plane through ``centre`` with normal ``normal``; texture coordinates are
+    the in-plane axes (x roughly along the camera's x, y along its y), mm."""
+
+    def __init__(self, centre, normal, texture):
+        self.centre = np.asarray(centre, dtype=np.float64)
+        n = np.asarray(normal, dtype=np.float64)
+        self.normal = n / np.linalg.norm(n)
+        e1 = -np.cross([0.0, 1.0, 0.0], self.normal)  # ~ +x for a plane facing the probe
+        self.e1 = e1 / np.linalg.norm(e1)
+        self.e2 = np.cross(self.e1, self.normal)  # ~ +y
+        self.texture = texture
+
+    def hit(self, o, d):
+        t = ((self.centre - o) @ self.normal) / (d @ self.normal)
+        p = o + t[..., None] * d
+        rel = p - self.centre
+        return p, np.stack([rel @ self.e1, rel @ self.e2], axis=-1), t > 0
+
+
+class Cylinder:
+    """A textured convex cylinder, axis parallel to y, front surface at z = ``z_front``;
+    texture coordinates are arc length and height, mm."""
+
+    def __init__(self, z_front, radius, texture):
+        self.z_front, self.radius, self.texture = z_front, radius, texture
+
+    def hit(self, o, d):
+        r = self.radius
+        ox, oz = o[..., 0], o[..., 2] - (self.z_front + r)
+        a = d[..., 0] ** 2 + d[..., 2] ** 2
+        b = 2.0 * (ox * d[..., 0] + oz * d[..., 2])
+        c = ox**2 + oz**2 - r * r
+        disc = b * b - 4.0 * a * c
+        with np.errstate(invalid="ignore"):
+            t = (-b - np.sqrt(disc)) / (2.0 * a)
+        p = o + t[..., None] * d
+        arc = r * np.arctan2(p[..., 0], self.z_front + r - p[..., 2])
+        return p, np.stack([arc, p[..., 1]], axis=-1), (disc > 0) & (t > 0)
+
+
+def render(model, surface, rng, noise_dn: float = NOISE_DN) -> np.ndarray:
+    """8-bit image of ``surface`` through ``model``: each pixel centre's ray, both halves."""
+    width, height = model.config.image_size
+    split = model.config.split
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    pixels = np.stack([u, v], axis=-1)
+    albedo = np.full((height, width), 0.1)
+    for half, cols in ((Half.LEFT, slice(0, split)), (Half.RIGHT, slice(split, width))):
+        rays = model.rays(pixels[:, cols], half)
+        _, xy, ok = surface.hit(rays.origins, rays.directions)
+        ok &= rays.status == Status.OK
+        albedo[:, cols] = np.where(ok, surface.texture(np.nan_to_num(xy)), 0.1)
+    image = 255.0 * albedo + rng.normal(0.0, noise_dn, albedo.shape)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def true_matches(model, surface, pixels):
+    """Surface points of left pixels, their texture coordinates and right-half pixels."""
+    rays = model.rays(pixels, Half.LEFT)
+    points, xy, ok = surface.hit(rays.origins, rays.directions)
+    projection = model.project(points, Half.RIGHT)
+    return points, xy, projection.pixels, projection.status
+
+
+def grid(model, step=4, margin=10):
+    """Left-half pixel grid with room for a patch."""
+    v, u = np.mgrid[margin : model.config.image_size[1] - margin : step,
+                    margin : model.config.split - margin : step]  # fmt: skip
+    return np.stack([u.ravel(), v.ravel()], axis=-1).astype(np.float64)
+
+
+# ----- scenes (rendered once per module) -----------------------------------------------------
+
+
+_RENDERS: dict = {}
+"""Renders cached for the module (each takes about a second)."""
+
+
+@pytest.fixture(params=["pinhole", "raytrace"])
+def plane_scene(request, model_factory):
+    """(name, model, surface, image): a tilted plane with the planted bands."""
+    name = request.param
+    if name not in _RENDERS:
+        model = model_factory[name]()
+        rng = np.random.default_rng(11)
+        texture = planted_texture(sinusoid_texture(rng))
+        surface = Plane([0.0, 0.0, PLANE_DEPTH_MM], PLANE_NORMAL, texture)
+        _RENDERS[name] = (name, model, surface, render(model, surface, rng))
+    return _RENDERS[name]
+
+
+@pytest.fixture
+def cylinder_scene(model_factory):
+    """(model, surface, image): a convex cylinder of 6 mm radius through the raytrace model."""
+    if "cylinder" not in _RENDERS:
+        model = model_factory["raytrace"]()
+        rng = np.random.default_rng(12)
+        surface = Cylinder(PLANE_DEPTH_MM, 6.0, sinusoid_texture(rng))
+        _RENDERS["cylinder"] = (model, surface, render(model, surface, rng))
+    return _RENDERS["cylinder"]
+
+
+def _select(rng, candidates, count):
+    assert candidates.shape[0] >= count, f"only {candidates.shape[0]} candidate points"
+    return candidates[rng.choice(candidates.shape[0], count, replace=False)]
+
+
+def _has_room(model, truth, room=20.0):
+    """True matches with room for a patch (plus a margin) inside the right half."""
+    width, height = model.config.image_size
+    u, v = truth[:, 0], truth[:, 1]
+    return (u > model.config.split + room) & (u < width - room) & (v > room) & (v < height - room)
+
+
+def _off_bands(xy, clear=0.8):
+    """Texture coordinates (mm) at least ``clear`` from a planted band, so that a patch
+    and its search stay on the random texture."""
+    off = np.ones(xy.shape[0], bool)
+    for lo, hi in (FLAT_BAND_MM, STRIPE_BAND_MM):
+        off &= (xy[:, 1] < lo - clear) | (xy[:, 1] > hi + clear)
+    return off
+
+
+def _textured_points(model, surface, rng, count=30):
+    """Left pixels on the random texture whose true match is well inside the right half."""
+    q = grid(model, step=3, margin=20)
+    _, xy, truth, status = true_matches(model, surface, q)
+    keep = (status == Status.OK) & _off_bands(xy) & _has_room(model, truth)
+    return _select(rng, q[keep], count)
+
+
+def _band_points(model, surface, rng, band, count=20):
+    """Left pixels whose whole patch lies inside a planted band, true match inside."""
+    q = grid(model, step=3)
+    _, xy, truth, status = true_matches(model, surface, q)
+    inner = (band[0] + 0.55, band[1] - 0.55)  # ~ half a 15 px patch at 11 mm, plus the edge
+    keep = (status == Status.OK) & _has_room(model, truth)
+    keep &= (xy[:, 1] > inner[0]) & (xy[:, 1] < inner[1])
+    return _select(rng, q[keep], count)
+
+
+def _errors(matches, truth):
+    accepted = np.array([m.ok for m in matches])
+    err = np.array([m.match - t for m, t in zip(matches, truth, strict=True) if m.ok])
+    return accepted, err
+
+
+# ----- epipolar curves ----------------------------------------------------------------------
+
+
+def test_curve_samples_are_dense_and_on_the_projected_ray(any_model, rng):
+    checked = 0
+    for pixel in grid(any_model, step=40)[::3]:
+        curve = epipolar_curve(any_model, pixel, Half.LEFT, (8.0, 60.0))
+        inside = curve.pixels[curve.inside]
+        if inside.shape[0] < 2:
+            continue
+        steps = np.linalg.norm(np.diff(curve.pixels, axis=0), axis=-1)
+        assert np.nanmax(steps) <= SPACING_PX
+        # independent: a ray point at a random depth projects onto the sampled polyline
+        ray = any_model.rays(pixel, Half.LEFT)
+        z = rng.uniform(8.0, 60.0)
+        point = ray.origins + (z - ray.origins[2]) / ray.directions[2] * ray.directions
+        q = any_model.project(point, Half.RIGHT)
+        if q.status != Status.OK:
+            continue
+        a, b = curve.pixels[:-1], curve.pixels[1:]
+        ab = b - a
+        s = np.clip(np.sum((q.pixels - a) * ab, -1) / np.sum(ab * ab, -1), 0, 1)
+        distance = np.nanmin(np.linalg.norm(a + s[:, None] * ab - q.pixels, axis=-1))
+        assert distance < CURVE_TOL_PX
+        checked += 1
+    assert checked > 5
+
+
+def test_curve_runs_far_to_near_uniform_in_inverse_depth(raytrace_model):
+    curve = epipolar_curve(raytrace_model, np.array([290.0, 240.0]), "left", (8.0, 60.0))
+    assert curve.depths_mm[0] == pytest.approx(60.0)
+    assert curve.depths_mm[-1] == pytest.approx(8.0)
+    step = (1 / 8 - 1 / 60) / (curve.depths_mm.size - 1)
+    np.testing.assert_allclose(np.diff(1.0 / curve.depths_mm), step)
+    np.testing.assert_allclose(curve.points[:, 2], curve.depths_mm)
+
+
+def test_curve_of_a_pixel_outside_its_half_is_empty(pinhole_model):
+    curve = epipolar_curve(pinhole_model, np.array([400.0, 240.0]), "left")
+    assert curve.pixels.shape == (0, 2)
+    assert curve.ray_status == Status.OUTSIDE_HALF
+
+
+def test_curve_rejects_a_bad_depth_range(pinhole_model):
+    with pytest.raises(ValueError, match="depth range"):
+        epipolar_curve(pinhole_model, np.array([100.0, 240.0]), "left", (20.0, 10.0))
+
+
+# ----- accuracy on textured surfaces -----------------------------------------------------------
+
+
+def test_matches_on_a_textured_plane(plane_scene, rng):
+    name, model, surface, image = plane_scene
+    pixels = _textured_points(model, surface, rng)
+    points, _, truth, _ = true_matches(model, surface, pixels)
+    matches = find_matches(model, image, pixels, "left")
+    accepted, err = _errors(matches, truth)
+    assert accepted.all(), [m.message for m in matches if not m.ok]
+    assert np.sqrt(np.mean(np.sum(err**2, -1))) < MATCH_RMS_TOL_PX
+    assert np.linalg.norm(err, axis=-1).max() < MATCH_MAX_TOL_PX
+    depth = np.array([m.depth_mm for m in matches])
+    np.testing.assert_allclose(depth, points[:, 2], atol=DEPTH_TOL_MM)
+    np.testing.assert_allclose(np.array([m.point for m in matches]), points, atol=3 * DEPTH_TOL_MM)
+    assert max(m.ray_gap_mm for m in matches) < RAY_GAP_TOL_MM
+    for m in matches:  # the diagnostics of a good match
+        assert m.score > 0.9 and m.second_ratio < 0.9 and m.back_px < 1.0
+        assert m.curve.shape[0] > 10 and m.message == ""
+
+
+def test_matches_on_a_curved_surface(cylinder_scene, rng):
+    model, surface, image = cylinder_scene
+    q = grid(model, step=3, margin=20)
+    _, _, truth, status = true_matches(model, surface, q)
+    pixels = _select(rng, q[(status == Status.OK) & _has_room(model, truth)], 30)
+    _, _, truth, _ = true_matches(model, surface, pixels)
+    matches = find_matches(model, image, pixels, "left")
+    accepted, err = _errors(matches, truth)
+    assert accepted.all(), [m.message for m in matches if not m.ok]
+    assert np.sqrt(np.mean(np.sum(err**2, -1))) < MATCH_RMS_TOL_PX
+    assert np.linalg.norm(err, axis=-1).max() < MATCH_MAX_TOL_PX
+
+
+def test_search_from_the_right_half_finds_the_left_point(plane_scene, rng):
+    _, model, surface, image = plane_scene
+    pixels = _textured_points(model, surface, rng, count=8)
+    _, _, truth, _ = true_matches(model, surface, pixels)
+    back = find_matches(model, image, truth, "right")
+    assert all(m.ok for m in back), [m.message for m in back if not m.ok]
+    err = np.array([m.match for m in back]) - pixels
+    assert np.sqrt(np.mean(np.sum(err**2, -1))) < MATCH_RMS_TOL_PX
+    assert all(m.half is Half.RIGHT for m in back)
+    np.testing.assert_array_equal(back[0].left, back[0].match)
+
+
+def test_warped_patches_beat_plain_ncc_through_the_prism(plane_scene, rng):
+    """The choice of the default warp: through the biprism the halves' local scale and
+    shear differ, and plain square patches match worse (and are refused more often)."""
+    name, model, surface, image = plane_scene
+    if name != "raytrace":
+        pytest.skip("the pinhole design's halves have nearly the same local scale")
+    pixels = _textured_points(model, surface, rng, count=25)
+    _, _, truth, _ = true_matches(model, surface, pixels)
+    rms = {}
+    for warp in ("plane", "none"):
+        accepted, err = _errors(find_matches(model, image, pixels, "left", warp=warp), truth)
+        rms[warp] = (np.sqrt(np.mean(np.sum(err**2, -1))), accepted.mean())
+    assert rms["plane"][0] < 0.5 * rms["none"][0]
+    assert rms["plane"][1] >= rms["none"][1]
+
+
+def test_image_type_does_not_change_the_match(plane_scene, rng):
+    _, model, surface, image = plane_scene
+    pixel = _textured_points(model, surface, rng, count=1)[0]
+    grey = find_match(model, image, pixel, "left")
+    deep = find_match(model, image.astype(np.uint16) * 257 + 3, pixel, "left")
+    colour = find_match(model, np.repeat(image[..., None], 3, axis=2), pixel, "left")
+    assert grey.ok and deep.ok and colour.ok
+    np.testing.assert_allclose(deep.match, grey.match, atol=1e-6)
+    np.testing.assert_allclose(colour.match, grey.match, atol=1e-9)
+
+
+# ----- planted failures -----------------------------------------------------------------------
+
+
+def test_untextured_points_are_refused(plane_scene, rng):
+    _, model, surface, image = plane_scene
+    pixels = _band_points(model, surface, rng, FLAT_BAND_MM)
+    matches = find_matches(model, image, pixels, "left")
+    assert [m.status for m in matches] == [MatchStatus.UNTEXTURED] * len(matches)
+    assert all(np.isnan(m.match).all() and "texture" in m.message for m in matches)
+
+
+def test_repeated_texture_is_refused_as_ambiguous(plane_scene, rng):
+    _, model, surface, image = plane_scene
+    pixels = _band_points(model, surface, rng, STRIPE_BAND_MM)
+    matches = find_matches(model, image, pixels, "left")
+    assert [m.status for m in matches] == [MatchStatus.AMBIGUOUS] * len(matches), [
+        m.message for m in matches if m.status is not MatchStatus.AMBIGUOUS
+    ]
+    assert all(m.second_ratio > 0.9 and np.isnan(m.match).all() for m in matches)
+
+
+def test_points_seen_in_one_half_only_are_refused(plane_scene, rng):
+    """Left pixels whose surface point falls outside the right half, although part of
+    their epipolar curve (at other depths) has room for the patch there."""
+    _, model, surface, image = plane_scene
+    q = grid(model, step=2)
+    _, xy, _, status = true_matches(model, surface, q)
+    q = q[(status == Status.OUTSIDE_HALF) & _off_bands(xy)]
+    # where each candidate's ray lands in the right half over the depth range (vectorised)
+    rays = model.rays(q, Half.LEFT)
+    z = np.geomspace(8.0, 60.0, 40)[:, None, None]
+    t = (z - rays.origins[None, :, 2:3]) / rays.directions[None, :, 2:3]
+    landing = model.project(rays.origins[None] + t * rays.directions[None], Half.RIGHT).pixels
+    room = _has_room(model, landing.reshape(-1, 2), room=12.0).reshape(z.shape[0], -1)
+    candidates = q[np.count_nonzero(room, axis=0) >= 2]
+    pixels = _select(rng, np.array(candidates), 20)
+    matches = find_matches(model, image, pixels, "left")
+    assert [m.status for m in matches] == [MatchStatus.OUTSIDE] * len(matches), [
+        m.message for m in matches if m.status is not MatchStatus.OUTSIDE
+    ]
+
+
+def test_a_point_too_close_to_its_half_edge_is_refused(plane_scene):
+    _, model, _, image = plane_scene
+    m = find_match(model, image, [model.config.split - 3.0, 240.0], "left")
+    assert m.status is MatchStatus.OUTSIDE and "patch" in m.message
+
+
+def test_a_point_outside_the_depth_range_is_refused(plane_scene, rng):
+    _, model, surface, image = plane_scene
+    pixel = _textured_points(model, surface, rng, count=1)[0]
+    m = find_match(model, image, pixel, "left", depth_range_mm=(20.0, 60.0))  # plane at ~11 mm
+    assert m.status is MatchStatus.OUTSIDE or m.status is MatchStatus.LOW_SCORE
+    assert not m.ok and np.isnan(m.match).all()
+
+
+# ----- inputs, noise, output --------------------------------------------------------------
+
+
+def test_bad_inputs_are_domain_errors(pinhole_model):
+    image = np.zeros((480, 640), np.uint8)
+    with pytest.raises(BadInputError, match="expects 640x480"):
+        find_match(pinhole_model, np.zeros((100, 100), np.uint8), [100, 100], "left")
+    with pytest.raises(BadInputError, match="not in the left half"):
+        find_match(pinhole_model, image, [400, 100], "left")
+    with pytest.raises(BadInputError, match="patch size"):
+        find_match(pinhole_model, image, [100, 100], "left", patch=14)
+    with pytest.raises(BadInputError, match="warp"):
+        find_match(pinhole_model, image, [100, 100], "left", warp="perspective")
+    with pytest.raises(BadInputError, match="depth range"):
+        find_match(pinhole_model, image, [100, 100], "left", depth_range_mm=(0.0, 10.0))
+    with pytest.raises(BadInputError, match="two coordinates"):
+        find_match(pinhole_model, image, [100, 100, 1], "left")
+    with pytest.raises(BadInputError, match="NaN"):
+        find_matches(pinhole_model, image, [[np.nan, 100]], "left")
+
+
+def test_noise_estimate_of_pure_noise(rng):
+    sigma = 2.5
+    noise = rng.normal(100.0, sigma, (200, 200))
+    ramp = np.add.outer(np.arange(200.0), 0.5 * np.arange(200.0))  # cancelled by the operator
+    assert estimate_noise(noise + ramp) == pytest.approx(sigma, rel=NOISE_ESTIMATE_TOL)
+
+
+def test_match_to_dict_is_json_ready(plane_scene, rng):
+    _, model, surface, image = plane_scene
+    pixel = _textured_points(model, surface, rng, count=1)[0]
+    good = find_match(model, image, pixel, "left").to_dict(curve=True)
+    refused = find_match(model, image, [model.config.split - 3.0, 240.0], "left").to_dict()
+    text = json.dumps([good, refused], allow_nan=False)
+    back = json.loads(text)
+    assert back[0]["status"] == "ok" and len(back[0]["curve"]) > 10
+    assert back[1]["status"] == "outside" and back[1]["match"] == [None, None]
