@@ -348,6 +348,16 @@ def test_warped_patches_beat_plain_ncc_through_the_prism(plane_scene, rng):
     assert rms["plane"][1] >= rms["none"][1]
 
 
+def test_without_the_back_search_the_match_is_the_same(plane_scene, rng):
+    _, model, surface, image = plane_scene
+    pixel = _textured_points(model, surface, rng, count=1)[0]
+    checked = find_match(model, image, pixel, "left")
+    unchecked = find_match(model, image, pixel, "left", check_back=False)
+    assert checked.ok and unchecked.ok
+    np.testing.assert_array_equal(unchecked.match, checked.match)
+    assert np.isnan(unchecked.back_px) and checked.back_px < 1.0
+
+
 def test_image_type_does_not_change_the_match(plane_scene, rng):
     _, model, surface, image = plane_scene
     pixel = _textured_points(model, surface, rng, count=1)[0]

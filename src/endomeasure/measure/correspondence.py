@@ -17,26 +17,41 @@ The search
    ``A = dq_other / dq_ref``, for a surface facing the probe (a plane of constant z)
    at that sample's depth: ``A = (d q_other / d p) (d p / d q_ref)``, with the first
    factor from :meth:`CameraModel.project_jacobian` and the second from the rays of the
-   neighbouring pixels met on that plane. ``warp='none'`` compares unwarped square
-   patches (plain NCC), for comparison.
-3. **Correlation.** Zero-mean normalised cross-correlation (NCC) of the reference patch
-   with the warped patch at every sample (bilinear interpolation, no quantisation of
-   sub-pixel positions).
+   neighbouring pixels met on that plane. For the refinement (step 5) the default
+   ``warp='plane'`` replaces ``A`` by the exact map of that plane (every patch sample's
+   ray met with it and projected): over a 15 px patch the raytrace map is far enough
+   from affine to bias an affine-warped match by about 0.07 px. ``warp='none'``
+   compares plain square patches, for comparison; on the committed scene images it is
+   2.4x less accurate and accepts a sixth as many random points (see
+   ``docs/benchmarks.md``, section ``correspondence``).
+3. **Correlation.** Normalised cross-correlation (NCC) of the reference patch with the
+   warped patch at every sample (bilinear interpolation, no quantisation of sub-pixel
+   positions), after removing each patch's mean *and* brightness ramp: vignetting,
+   illumination fall-off and the dark band of the prism apex tilt the brightness
+   differently in the two halves.
 4. **Checks**, in this order, each a refusal with a reason (:class:`MatchStatus`):
-   the reference patch must carry texture along the search direction (``untextured``);
-   the peak must not sit where the searchable stretch of the curve ends, because the
-   match could then lie beyond it (``outside``); searching back from the best candidate
-   must find the original point again, or at least score it as well as anything else
-   (``outside``: a point the other half does not see correlates best with some
-   unrelated point, whose own match lies elsewhere); the peak must correlate well
-   (``low_score``); and no other peak of the curve may come close to it
-   (``ambiguous``, e.g. repeated texture).
+
+   - the reference patch must carry texture along the search direction
+     (``untextured``, see below);
+   - the curve must have room for the patch somewhere in the other half (``outside``);
+   - no second peak of the curve, outside the main peak's lobe, may come within
+     :data:`MAX_SECOND_RATIO` of the best while itself passing as a match
+     (``ambiguous``: repeated texture);
+   - the peak must not sit where the searchable stretch of the curve ends (at the edge
+     of the other half or of the depth range), because the match could lie beyond it
+     (``outside``);
+   - searching back from the best candidate must find the query point again, or at
+     least score it within :data:`MAX_SECOND_RATIO` of its own best (``outside``: a
+     point the other half does not see correlates best with some unrelated point,
+     whose own match lies elsewhere);
+   - the peak's NCC, corrected for image noise (``signal_score``), must reach
+     :data:`MIN_SCORE` (``low_score``), before and after the refinement.
 5. **Sub-pixel.** A parabola through the peak and its neighbours in curve parameter
-   gives the start; then a 2-D Gauss-Newton refinement of the pixel (with a gain and an
-   offset between the halves, Lucas-Kanade style) on the warped patch. The refinement
-   is free across the curve, so the final pair is *not* forced onto the epipolar curve
-   and its ray gap (the common perpendicular of the two rays) is a real check of the
-   calibration and the match.
+   gives the start; then a Gauss-Newton (Lucas-Kanade) refinement of the pixel, a small
+   linear shape correction (the surface's tilt), gain, offset and brightness ramp on
+   the warped patch. The pixel is free across the curve, so the final pair is *not*
+   forced onto the epipolar curve and its ray gap (the common perpendicular of the two
+   rays) is a real check of the calibration and the match.
 
 Texture criterion
 -----------------
@@ -703,7 +718,7 @@ def _match_one(model, grey, floor, pixel, half: Half, settings, noise_sigma, che
     best = search.best
     direction = _search_direction(search, best)
     precision = _localisation_precision(grey, pixel, cols, offsets, direction, noise)
-    fields = dict(noise_sigma=noise, precision_px=precision, **searched)
+    fields = dict(noise_sigma=noise, precision_px=precision, back_px=np.nan, **searched)
     if not precision <= settings.max_precision_px:
         return _refuse(
             pixel, half, MatchStatus.UNTEXTURED,
@@ -754,7 +769,6 @@ def _match_one(model, grey, floor, pixel, half: Half, settings, noise_sigma, che
             **fields,
         )  # fmt: skip
 
-    back_px = np.nan
     if check_back:
         back = _search(model, grey, candidate, other_half(half), settings)
         mutual, back_px = _mutual(back, pixel, settings)
