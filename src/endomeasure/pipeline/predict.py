@@ -156,10 +156,54 @@ def _zone_rows(bt, bias, std, std_img, std_cal, zone_mm) -> list[dict[str, Any]]
     return rows
 
 
+def _board_pixels(model, board: str, ids, xyz, ql, qr):
+    """Pixels of the ideal board at its estimated pose (the paper's Section 4: the
+    prediction is made at the "calibration target positions calculated for the test set").
+
+    The rigid transform board -> model frame is the least-squares fit (Kabsch) of the
+    board's corner grid to the triangulated corners; the grid at that pose is projected
+    into both halves. Corners that do not project keep their detected pixels.
+    """
+    from endomeasure.features.boards import parse_board_spec
+
+    grid = np.asarray(parse_board_spec(board).object_points)[np.asarray(ids, dtype=np.int64)]
+    ok = np.all(np.isfinite(xyz), axis=1)
+    if ok.sum() < 3:
+        return ql, qr
+    a, b = grid[ok], xyz[ok]
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    ideal = (grid - ca) @ rot.T + cb
+    out = []
+    for half, q in (("left", ql), ("right", qr)):
+        proj = model.project(ideal, half)
+        good = (proj.status == 0)[:, None]
+        out.append(np.where(good, proj.pixels, q))
+    return out[0], out[1]
+
+
 def board_predictions(
-    bt, model, *, sigma, rho_images=0.0, rho_points=0.0, param_cov=None, method="ut", **options
+    bt,
+    model,
+    *,
+    sigma,
+    rho_images=0.0,
+    rho_points=0.0,
+    param_cov=None,
+    method="ut",
+    at="board",
+    **options,
 ) -> dict[str, np.ndarray]:
     """Predicted bias, std and its parts for every row of a board test's table.
+
+    ``at='board'`` predicts at the pixels of the ideal board at its estimated pose
+    (:func:`_board_pixels`), ``at='detections'`` at the detected pixels. The first is the
+    better estimate of the error distribution: a prediction at noisy pixels is itself
+    noisy, and for a segment whose ends carry a large depth noise it is biased upwards
+    (the observed depth difference of its ends tilts the segment, which turns the
+    quadratic depth term into a linear one).
 
     Returns
     -------
@@ -172,6 +216,8 @@ def board_predictions(
     images = []
     for k in range(len(bt.images)):
         ids, ql, qr, xyz = bt.image_pixels(k)
+        if at == "board":
+            ql, qr = _board_pixels(model, bt.board[k], ids, xyz, ql, qr)
         images.append(BoardImage(ids, xyz, ql, qr))
     m = t.kind.shape[0]
     out = {
@@ -412,7 +458,13 @@ def predict_stored_measurement(
                 Record(
                     PREDICTION_RECORD,
                     f"{measurement}-{method}",
-                    attrs={"mode": "measurement", **report.to_dict()},
+                    attrs={
+                        "mode": "measurement",
+                        **{
+                            ("measurement_kind" if k == "kind" else k): v
+                            for k, v in report.to_dict().items()
+                        },
+                    },
                     units={"sigma_px": "px", "relative_percent": "%"},
                 )
             )
@@ -434,8 +486,9 @@ def parse_depths(text: str) -> np.ndarray:
         else:
             depths = np.array([float(x) for x in s.split(",")])
     except ValueError:
-        raise BadInputError(  # noqa: B904 (the message says everything)f"cannot read the depths {text!r}",
-            hint="give START:STOP:STEP in mm (e.g. 10:45:5) or a list 12,20,30"
+        raise BadInputError(  # noqa: B904 (the message says everything)
+            f"cannot read the depths {text!r}",
+            hint="give START:STOP:STEP in mm (e.g. 10:45:5) or a list 12,20,30",
         )
     if depths.size == 0 or not np.all(np.isfinite(depths) & (depths > 0)):
         raise BadInputError(f"depths must be positive numbers of mm, got {text!r}")
