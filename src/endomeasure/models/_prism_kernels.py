@@ -9,6 +9,9 @@ arithmetic in registers. The formulas are the ones of
 :func:`endomeasure.geometry.rays.refract` (vector Snell) and plane intersection; the
 tests check these kernels against those numpy kernels.
 
+All kernels use numba's ``error_model="numpy"``: a division by zero gives inf/NaN (and
+then a status), never an exception out of vectorised code.
+
 Face arrays are ``float64[8]``: rear normal (3), rear distance, front normal (3), front
 distance, all in the camera frame (mm).
 """
@@ -27,10 +30,13 @@ _TIR = int(Status.TOTAL_INTERNAL_REFLECTION)
 _BEHIND = int(Status.BEHIND)
 _NOT_CONVERGED = int(Status.NOT_CONVERGED)
 _MAX_HALVINGS = 12
+# Central-difference step in normalised lens coordinates for d(offset)/d(x, y): truncation
+# error ~h^2 (1e-14), rounding ~1e-16/h (1e-9 relative).
+_JACOBIAN_STEP = 1e-7
 _NAN = math.nan
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _refract(dx, dy, dz, nx, ny, nz, eta):
     """Vector Snell for one ray; returns (tx, ty, tz, ok)."""
     cos_n = dx * nx + dy * ny + dz * nz
@@ -44,7 +50,7 @@ def _refract(dx, dy, dz, nx, ny, nz, eta):
     return eta * dx + coef * nx, eta * dy + coef * ny, eta * dz + coef * nz, True
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _trace(x, y, faces, n_glass):
     """Trace lens coordinates (x, y) through the prism: (ox, oy, oz, dx, dy, dz, status)."""
     inv = 1.0 / math.sqrt(x * x + y * y + 1.0)
@@ -67,7 +73,7 @@ def _trace(x, y, faces, n_glass):
     return p1x + t1 * gx, p1y + t1 * gy, p1z + t1 * gz, dx, dy, dz, _OK
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def trace_rays(x, y, faces, n_glass, origins, directions, status):
     """Trace many lens coordinates into ``origins (N,3)``, ``directions (N,3)``, ``status (N,)``."""
     for i in range(x.shape[0]):
@@ -77,7 +83,7 @@ def trace_rays(x, y, faces, n_glass, origins, directions, status):
         status[i] = st
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _offset(x, y, faces, n_glass, px, py, pz):
     """Offset of the traced ray from (px, py) in the plane z = pz, and the trace status."""
     ox, oy, oz, dx, dy, dz, st = _trace(x, y, faces, n_glass)
@@ -87,7 +93,7 @@ def _offset(x, y, faces, n_glass, px, py, pz):
     return ox + s * dx - px, oy + s * dy - py, s, st
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _poly_start(exponents, coeffs, wx, wy, q, pw_x, pw_y, pw_q):
     """Polynomial start map: ``(x, y, dx/dwx, dx/dwy, dy/dwx, dy/dwy)`` at (wx, wy, q)."""
     top = pw_x.shape[0] - 1
@@ -115,7 +121,7 @@ def _poly_start(exponents, coeffs, wx, wy, q, pw_x, pw_y, pw_q):
     return x, y, gxx, gxy, gyx, gyy
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _lut_start(lut, origin, step, wx, wy, q):
     """Trilinear look-up of the lens coordinates of (wx, wy, q) and their w-derivatives.
 
@@ -138,7 +144,7 @@ def _lut_start(lut, origin, step, wx, wy, q):
     return x, y, x_wx / step[0], x_wy / step[1], y_wx / step[0], y_wy / step[1], ok
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _trilinear(lut, c, iq, iy, ix, tq, ty, tx):
     """Value and index-space derivatives along x and y of channel c in one cell."""
     # interpolate along q first, then y, then x
@@ -153,7 +159,7 @@ def _trilinear(lut, c, iq, iy, ix, tq, ty, tx):
     return b0 + tx * (b1 - b0), b1 - b0, (a10 - a00) + tx * ((a11 - a01) - (a10 - a00))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _lens_jacobian(x, y, faces, n_glass, px, py, pz, h, out):
     """d(x, y)/dP at a converged aim, into ``out`` (2, 3).
 
@@ -177,10 +183,10 @@ def _lens_jacobian(x, y, faces, n_glass, px, py, pz, h, out):
     out[1, 0], out[1, 1], out[1, 2] = i21, i22, -(i21 * tx + i22 * ty)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def aim_rays(
     points, faces, n_glass, centre, exponents, coeffs, lut, lut_origin, lut_step,
-    tol_x, tol_y, max_iter, xy, status, dxy_dp,
+    start_xy, tol_x, tol_y, max_iter, xy, status, dxy_dp,
 ):  # fmt: skip
     """Ray aiming for many points by Broyden's method (see ``raytrace.aim_rays``).
 
@@ -194,6 +200,10 @@ def aim_rays(
         Polynomial start map ``(wx, wy, q) -> (x, y)``, used where the table has no value.
     lut, lut_origin, lut_step
         Start table (see ``_lut_start``); an empty table (K < 2) disables it.
+    start_xy : float64[N, 2] or float64[0, 2]
+        Warm starts (e.g. the previous solution during an optimisation); rows with NaN,
+        or an empty array, start from the table. The inverse Jacobian always starts from
+        the table or polynomial at the point.
     tol_x, tol_y : float
         Step tolerances in normalised lens units.
     xy : float64[N, 2] (output)
@@ -212,6 +222,7 @@ def aim_rays(
     pw_q = np.empty(top + 1)
     use_lut = lut.shape[0] >= 2
     want_jac = dxy_dp.shape[0] > 0
+    warm = start_xy.shape[0] > 0
     for i in range(points.shape[0]):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         xy[i, 0] = _NAN
@@ -231,14 +242,24 @@ def aim_rays(
             x, y, gxx, gxy, gyx, gyy = _poly_start(exponents, coeffs, wx, wy, q, pw_x, pw_y, pw_q)
         # inverse Jacobian of the offset (mm at depth pz): dw = offset * q
         b11, b12, b21, b22 = gxx * q, gxy * q, gyx * q, gyy * q
-        ex, ey, s, st = _offset(x, y, faces, n_glass, px, py, pz)
+        ex, ey, s, st = _NAN, _NAN, -1.0, _NOT_CONVERGED
+        if warm and math.isfinite(start_xy[i, 0]) and math.isfinite(start_xy[i, 1]):
+            ex, ey, s, st = _offset(start_xy[i, 0], start_xy[i, 1], faces, n_glass, px, py, pz)
+            if st == _OK:
+                x, y = start_xy[i, 0], start_xy[i, 1]
+        if st != _OK:
+            ex, ey, s, st = _offset(x, y, faces, n_glass, px, py, pz)
         if st != _OK:
             status[i] = st
             continue
         result = _NOT_CONVERGED
-        for _ in range(max_iter):
-            sx = -(b11 * ex + b12 * ey)
-            sy = -(b21 * ex + b22 * ey)
+        sx = -(b11 * ex + b12 * ey)
+        sy = -(b21 * ex + b22 * ey)
+        if abs(sx) < tol_x and abs(sy) < tol_y:  # a warm start already on the point
+            x += sx
+            y += sy
+            result = _OK if s > 0.0 else _BEHIND
+        for _ in range(max_iter if result == _NOT_CONVERGED else 0):
             nex, ney, s, st = _offset(x + sx, y + sy, faces, n_glass, px, py, pz)
             h = 0
             while st != _OK and h < _MAX_HALVINGS:  # keep the ray inside the prism
@@ -263,7 +284,13 @@ def aim_rays(
             x += sx
             y += sy
             ex, ey = nex, ney
+            # The next step is known without another trace; once it is below the
+            # tolerance, take it and stop (its own error is far smaller still).
+            sx = -(b11 * ex + b12 * ey)
+            sy = -(b21 * ex + b22 * ey)
             if abs(sx) < tol_x and abs(sy) < tol_y:
+                x += sx
+                y += sy
                 result = _OK if s > 0.0 else _BEHIND
                 break
         status[i] = result
@@ -271,6 +298,6 @@ def aim_rays(
             xy[i, 0] = x
             xy[i, 1] = y
             if want_jac:
-                _lens_jacobian(x, y, faces, n_glass, px, py, pz, tol_x, dxy_dp[i])
+                _lens_jacobian(x, y, faces, n_glass, px, py, pz, _JACOBIAN_STEP, dxy_dp[i])
         elif want_jac:
             dxy_dp[i, :, :] = _NAN

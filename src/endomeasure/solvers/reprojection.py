@@ -9,7 +9,7 @@ respect to the 3D point (the pose part follows by the chain rule).
 A :class:`Projector` provides them. :func:`projector_for` picks one by model name:
 
 - ``pinhole``: closed-form derivatives of the Brown pinhole projection;
-- ``raytrace``: ray aiming by Newton's method, warm-started from the previous call's
+- ``raytrace``: the model's ray aiming, warm-started from the previous call's
   lens coordinates, and derivatives through the aiming by the implicit-function rule;
 - any other model: central finite differences of :meth:`CameraModel.project`, so a new
   model works without touching the solvers (slower, but correct).
@@ -41,9 +41,6 @@ truncation error is ~h^2 times the third derivative (~1e-12 relative), the round
 ~eps/h (~1e-10 relative): both far below what the covariance needs."""
 FD_STEP_LENS = 1e-7
 """Central-difference step in normalised lens coordinates (about 2e-5 px)."""
-AIM_NEWTON_TOL_PX = 1e-9
-"""Newton ray aiming stops when the step falls below this (px), like the model's own aiming."""
-AIM_NEWTON_MAX_ITER = 12
 
 
 class Projector:
@@ -269,7 +266,7 @@ class PinholeProjector(Projector):
         return pixels, ok, dq_dall, dq_dpoints
 
 
-# ----- raytrace: Newton ray aiming and the implicit-function rule ----------------------------
+# ----- raytrace: warm-started ray aiming and the implicit-function rule ---------------------
 
 _CAMERA = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 _PRISM = {
@@ -337,16 +334,15 @@ def _miss_derivative(model, i, x, y, half, P):
 
 
 class RaytraceProjector(Projector):
-    """Projection through the ``raytrace`` model by warm-started Newton ray aiming.
+    """Projection through the ``raytrace`` model by warm-started ray aiming.
 
     Notes
     -----
     Let ``G(x, y; theta, P)`` be the offset from P of the object ray traced from lens
     coordinates ``(x, y)``, taken at the depth of P. Projection solves ``G = 0`` (ray
-    aiming). The first call uses the model's own aiming
-    (:func:`endomeasure.models.raytrace.aim_rays`); later calls start Newton's method
-    from the previous solution, which during an optimisation is a few hundredths of a
-    pixel away, so two or three traces per point suffice. By the implicit-function rule
+    aiming) with the model's own :func:`endomeasure.models.raytrace.aim_rays`, started
+    from the previous call's solution, which during an optimisation is a few hundredths
+    of a pixel away, so two or three traces per point suffice. By the implicit-function rule
     ``d(x, y)/d theta = -G_xy^-1 G_theta`` and ``d(x, y)/dP = -G_xy^-1 G_P`` with
     ``G_P = [[-1, 0, d_x/d_z], [0, -1, d_y/d_z]]``; ``G_xy`` and ``G_theta`` come from
     central differences of the closed-form trace (never of the aiming). The pixel is
@@ -369,47 +365,13 @@ class RaytraceProjector(Projector):
     def _aim(self, model, P, half, idx):
         from endomeasure.models.raytrace import aim_rays
 
-        x, y = self._x[idx].copy(), self._y[idx].copy()
-        cold = ~(np.isfinite(x) & np.isfinite(y))
-        # cold start: the lens direction of the point, as if there were no prism
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x[cold] = P[cold, 0] / P[cold, 2]
-            y[cold] = P[cold, 1] / P[cold, 2]
-        done = np.zeros(idx.size, dtype=bool)
-        active = np.flatnonzero(np.isfinite(x) & np.isfinite(y))
-        tol = AIM_NEWTON_TOL_PX / max(model.fx, model.fy)
-        step = np.zeros((idx.size, 2))
-        for _ in range(AIM_NEWTON_MAX_ITER):
-            if active.size == 0:
-                break
-            Pa = P[active]
-            G, _, ok = _miss_at_depth(model, x[active], y[active], half, Pa)
-            J, okj = _miss_jacobian_lens(model, x[active], y[active], half, Pa)
-            good = ok & okj
-            # a failed trace (a step into total internal reflection): halve the last step
-            back = active[~good]
-            step[back] *= 0.5
-            x[back] += step[back, 0]
-            y[back] += step[back, 1]
-            act = active[good]
-            st = _solve2(J[good], G[good])
-            st = np.where(np.isfinite(st), st, np.nan)
-            step[act] = st
-            x[act] -= st[:, 0]
-            y[act] -= st[:, 1]
-            small = np.max(np.abs(st), axis=-1) < tol
-            done[act[small]] = True
-            keep_back = back[np.max(np.abs(step[back]), axis=-1) > tol]
-            active = np.concatenate([act[~small & np.all(np.isfinite(st), axis=-1)], keep_back])
-        # anything Newton did not settle: the model's own aiming from scratch
-        cold = np.flatnonzero(~done)
-        if cold.size:
-            try:
-                xa, ya, st = aim_rays(model, P[cold], half)
-            except ValueError:  # a trial model so wild that the half has no valid rays
-                xa, ya, st = np.nan, np.nan, np.full(cold.size, Status.NOT_CONVERGED)
-            x[cold] = np.where(st == Status.OK, xa, np.nan)
-            y[cold] = np.where(st == Status.OK, ya, np.nan)
+        start = np.stack([self._x[idx], self._y[idx]], axis=-1)
+        try:
+            x, y, status = aim_rays(model, P, half, start=start)
+        except ValueError:  # a trial model so wild that the half has no valid rays
+            x, y, status = start[:, 0], start[:, 1], np.full(idx.size, Status.NOT_CONVERGED)
+        ok = status == Status.OK
+        x, y = np.where(ok, x, np.nan), np.where(ok, y, np.nan)
         self._x[idx], self._y[idx] = x, y
         return x, y
 
