@@ -24,10 +24,10 @@ from typing import Any
 
 from endomeasure import __version__
 from endomeasure.errors import BadInputError
+from endomeasure.simulate.manifest import MANIFEST_NAME
 
 __all__ = ["SimulationReport", "simulate", "parse_sets", "MANIFEST_NAME", "MANIFEST_FORMAT"]
 
-MANIFEST_NAME = "simulation.json"
 MANIFEST_FORMAT = "endomeasure-simulation"
 MANIFEST_VERSION = 1
 _PNG_COMPRESSION = 9  # smallest files; PNG is lossless, so this changes nothing but size
