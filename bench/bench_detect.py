@@ -15,8 +15,15 @@ Usage::
         in the same run. Without --images: 12 analytic renders (for the sample set:
         --images sample_sessions/calib --board SPEC). Writes the "detect" section of
         docs/benchmarks.md.
+    python bench/bench_detect.py refinement [--sets DIR,DIR]
+        Sub-pixel refinements compared on the simulator's calibration and test sets
+        (default: sample_sessions/ with noise, and its noise-free twin rendered once
+        into /tmp/endomeasure-noise-free if missing): the sector-based finder's grid of
+        every half is refined by each candidate (SB's own fit, cornerSubPix windows,
+        saddle-point fit, point symmetry with and without the illumination term, window
+        sizes) and compared with the exact corner pixels of the truth JSON.
     python bench/bench_detect.py
-        Both, with small sizes (what `make bench` runs).
+        Accuracy and throughput, with small sizes (what `make bench` runs).
 """
 
 from __future__ import annotations
@@ -45,6 +52,7 @@ FOCAL_PX = 420.0
 # The default noisy render: sigma in grey levels, close to a good CCD at mid exposure.
 NOISE_SIGMA = 2.0
 BOARDS = ("chessboard:9x6:1.0", "chessboard:7x5:2.0", "chessboard:8x6:0.5")
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def random_scene(rng: np.random.Generator, spec) -> dict:
@@ -131,6 +139,106 @@ def accuracy(n_images: int, seed: int, methods: tuple[str, ...]) -> dict:
     return results
 
 
+def _simulator_halves(root: Path) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+    """(set, crop, SB grid (rows, cols, 2), true pixels (n, 2)) of every half SB finds."""
+    import json
+
+    import cv2
+
+    manifest = json.loads((root / "simulation.json").read_text())
+    split = manifest["split"]
+    halves = []
+    for set_name in ("calib", "test"):
+        for item in manifest["sets"][set_name]["images"]:
+            truth = json.loads((root / item["truth"]).read_text())
+            gray = cv2.imread(str(root / item["image"]), cv2.IMREAD_GRAYSCALE)
+            spec = parse_board_spec(item["board_spec"])
+            for index, half in enumerate(("left", "right")):
+                lo, hi = (0, split) if index == 0 else (split, gray.shape[1])
+                crop = np.ascontiguousarray(gray[:, lo:hi])
+                found = detect_chessboard(crop, spec, "sb")
+                if not found.ok:
+                    continue
+                true_px = np.array(truth["corners"]["pixels"][half], dtype=float) - [lo, 0]
+                grid = found.pixels.reshape(spec.rows, spec.cols, 2)
+                halves.append((set_name, crop, grid, true_px))
+    return halves
+
+
+def _refiners() -> dict:
+    """Candidate refinements: (crop uint8, SB grid) -> pixels (n, 2)."""
+    import cv2
+
+    from endomeasure.features.chessboard import refine_symmetric
+    from endomeasure.features.subpixel import saddle_corners, symmetric_corners
+
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
+
+    def subpix(fraction: float, zero_zone: float = 0.0):
+        def refine(crop, grid):
+            spacing = min(
+                np.linalg.norm(np.diff(grid, axis=1), axis=-1).min(),
+                np.linalg.norm(np.diff(grid, axis=0), axis=-1).min(),
+            )
+            half = int(np.clip(np.floor(fraction * spacing), 2, 15))
+            zero = max(1, round(zero_zone * half)) if zero_zone else -1
+            corners = np.ascontiguousarray(grid.reshape(-1, 1, 2), dtype=np.float32)
+            out = cv2.cornerSubPix(crop, corners, (half, half), (zero, zero), criteria)
+            return out.reshape(-1, 2).astype(float)
+
+        return refine
+
+    def symmetric(**options):
+        return lambda crop, grid: symmetric_corners(crop, grid, **options).pixels
+
+    return {
+        "SB's own sub-pixel fit": lambda crop, grid: grid.reshape(-1, 2),
+        "cornerSubPix, half-window 0.4 x spacing": subpix(0.4),
+        "cornerSubPix, half-window 0.5 x spacing (previous default)": subpix(0.5),
+        "cornerSubPix, half-window 0.6 x spacing": subpix(0.6),
+        "cornerSubPix, 0.5 x spacing, zero zone 0.2 x window": subpix(0.5, 0.2),
+        "saddle point of a quadratic fit (sigma 0.1 square)": (
+            lambda crop, grid: saddle_corners(crop, grid).pixels
+        ),
+        "point symmetry, no illumination term (sigma 0.3 square)": symmetric(illumination=False),
+        "point symmetry + illumination gradient, sigma 0.2 square": symmetric(sigma_squares=0.2),
+        "point symmetry + illumination gradient, sigma 0.25 square": symmetric(sigma_squares=0.25),
+        "point symmetry + illumination gradient, sigma 0.35 square": symmetric(sigma_squares=0.35),
+        "**cornerSubPix start, point symmetry + illumination, sigma 0.3** (adopted)": (
+            refine_symmetric
+        ),
+    }
+
+
+def refinement(roots: list[Path]) -> list[str]:
+    """Table rows: per refinement, RMS / max error per set and render, ms per half."""
+    import json
+
+    data = {}
+    for root in roots:
+        noise_free = json.loads((root / "simulation.json").read_text())["noise_free"]
+        data["noise-free" if noise_free else "noisy"] = _simulator_halves(root)
+    rows = []
+    for name, refine in _refiners().items():
+        cells, seconds, halves = [], 0.0, 0
+        for label in ("noise-free", "noisy"):
+            for set_name in ("calib", "test"):
+                errors = []
+                for set_of, crop, grid, true_px in data.get(label, []):
+                    if set_of != set_name:
+                        continue
+                    start = time.perf_counter()
+                    pixels = refine(crop, grid)
+                    seconds += time.perf_counter() - start
+                    halves += 1
+                    diff = pixels - true_px
+                    errors.append(diff[np.isfinite(diff).all(axis=1)])
+                e = np.linalg.norm(np.concatenate(errors), axis=1) if errors else np.array([np.nan])
+                cells.append(f"{np.sqrt(np.mean(e**2)):.3f} / {e.max():.2f}")
+        rows.append(f"| {name} | {' | '.join(cells)} | {1000 * seconds / max(halves, 1):.1f} |")
+    return rows
+
+
 def _bare_loop(files: list[str], pattern: tuple[int, int], split: int) -> int:
     """The OpenCV calls `detect` makes per image, without anything around them."""
     import cv2
@@ -211,6 +319,23 @@ def _default_images(board_default: str, count: int = 12) -> tuple[list[str], str
     return files, board_default, SPLIT
 
 
+def _noise_free_twin() -> Path:
+    """The noise-free render of sample_sessions' calib and test sets (rendered once)."""
+    import json
+    import subprocess
+
+    folder = Path("/tmp/endomeasure-noise-free")
+    if not (folder / "simulation.json").exists():
+        seed = json.loads((ROOT / "sample_sessions" / "simulation.json").read_text())["seed"]
+        exe = Path(sys.executable).parent / "endomeasure"
+        subprocess.run(
+            [str(exe), "simulate", str(folder), "--preset", "default", "--set", "calib,test",
+             "--seed", str(seed), "--noise-free"],
+            check=True, capture_output=True,
+        )  # fmt: skip
+    return folder
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -224,6 +349,8 @@ def main(argv: list[str] | None = None) -> int:
     thr.add_argument("--images", default=None, help="directory of images")
     thr.add_argument("--board", default=BOARDS[0])
     thr.add_argument("--split", type=int, default=None)
+    ref = sub.add_parser("refinement", help="compare sub-pixel refinements on simulator sets")
+    ref.add_argument("--sets", default=None, help="comma-separated simulator output folders")
     argv = sys.argv[1:] if argv is None else argv
     if not argv:
         main(["accuracy", "--images", "6", "--methods", "sb,sb-accuracy,classic-subpix,sb-subpix"])
@@ -265,6 +392,17 @@ def main(argv: list[str] | None = None) -> int:
         from _common import write_section
 
         write_section("detect", body)
+        return 0
+    if args.command == "refinement":
+        if args.sets:
+            roots = [Path(p) for p in args.sets.split(",")]
+        else:
+            roots = [ROOT / "sample_sessions", _noise_free_twin()]
+        print(
+            "| refinement | noise-free calib | noise-free test | noisy calib | noisy test "
+            "| ms/half |\n|---|---:|---:|---:|---:|---:|"
+        )
+        print("\n".join(refinement(roots)))
         return 0
     if args.command == "accuracy":
         methods = tuple(m for m in args.methods.split(",") if m)
