@@ -6,8 +6,10 @@ board the half shows and however it is turned. The same id in both halves is the
 the same physical corner by construction. Detection is ``cv2.aruco.CharucoDetector``
 (markers, then corners interpolated from the markers' local homographies); the corners
 are then refined with ``cv2.cornerSubPix`` with a half-window matched to the square size
-seen in the image, the refinement that won for plain chessboards
-(:mod:`endomeasure.features.chessboard`).
+seen in the image. Plain chessboards go one step further, to the centre of point
+symmetry (:mod:`endomeasure.features.subpixel`), whose window needs the four squares
+around a corner to be plain; here the markers start ``(square - marker) / 2`` from the
+corner, so that window would have to shrink to the white gap (not yet measured).
 
 The board layout is OpenCV's current one (``setLegacyPattern(False)``, OpenCV >= 4.6),
 the one ``CharucoBoard.generateImage`` draws.

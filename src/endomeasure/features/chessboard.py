@@ -34,7 +34,7 @@ candidates stay selectable by name so that the comparison can be re-run:
     illumination gradient).
 ``sb-classic-symmetry`` (the default)
     As ``sb-symmetry`` with the ``findChessboardCorners`` fallback finder. The measured
-    winner: 0.030 / 0.033 px RMS on the simulator's noise-free calibration / test sets
+    winner: 0.030 / 0.032 px RMS on the simulator's noise-free calibration / test sets
     against 0.077 / 0.064 px for ``cornerSubPix`` (``docs/accuracy.md``).
 
 Canonical ids (so that the same id in both halves is the same physical corner and
