@@ -5,13 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from endomeasure.geometry.rotations import rotation_matrix
-from endomeasure.solvers.reprojection import (
-    FiniteDifferenceProjector,
-    projector_for,
-    rotation_jacobian,
-    skew,
-)
+from endomeasure.geometry.rotations import rotation_jacobian, rotation_matrix, skew
+from endomeasure.solvers.reprojection import FiniteDifferenceProjector, projector_for
 
 JAC_REL_TOL = 1e-6  # central differences of model.project carry ~1e-8 relative error
 

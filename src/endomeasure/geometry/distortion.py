@@ -11,7 +11,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["distort", "distort_jacobian", "undistort", "Undistortion", "max_monotonic_radius2"]
+__all__ = [
+    "distort",
+    "distort_jacobian",
+    "distort_coeff_jacobian",
+    "undistort",
+    "Undistortion",
+    "max_monotonic_radius2",
+]
 
 UNDISTORT_MAX_ITER = 30
 
@@ -55,6 +62,19 @@ def distort_jacobian(x: np.ndarray, y: np.ndarray, coeffs) -> tuple[np.ndarray, 
     j11 = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
     j22 = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
     return j11, cross, cross, j22
+
+
+def distort_coeff_jacobian(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Derivatives of :func:`distort` by ``(k1, k2, p1, p2, k3)``, shape (..., 2, 5).
+
+    The distortion is linear in its coefficients, so these do not depend on them.
+    """
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    xy2 = 2.0 * x * y
+    d_dx = np.stack([x * r2, x * r4, xy2, r2 + 2.0 * x * x, x * r4 * r2], axis=-1)
+    d_dy = np.stack([y * r2, y * r4, r2 + 2.0 * y * y, xy2, y * r4 * r2], axis=-1)
+    return np.stack([d_dx, d_dy], axis=-2)
 
 
 class Undistortion(NamedTuple):

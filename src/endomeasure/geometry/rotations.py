@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["rotation_matrix", "rotation_vector", "transform_points"]
+__all__ = ["rotation_matrix", "rotation_vector", "rotation_jacobian", "skew", "transform_points"]
 
 _SMALL_ANGLE = 1e-8  # rad; below this the series form is exact to float64 precision
 
@@ -33,18 +33,48 @@ def rotation_matrix(rvec: np.ndarray) -> np.ndarray:
     # sin(t)/t and (1-cos(t))/t^2, with their limits 1 and 1/2 at t -> 0
     a = np.where(small, 1.0, np.sin(safe) / safe)
     b = np.where(small, 0.5, (1.0 - np.cos(safe)) / safe**2)
-    x, y, z = rvec[..., 0], rvec[..., 1], rvec[..., 2]
-    zero = np.zeros_like(x)
-    K = np.stack(
-        [
-            np.stack([zero, -z, y], axis=-1),
-            np.stack([z, zero, -x], axis=-1),
-            np.stack([-y, x, zero], axis=-1),
-        ],
-        axis=-2,
-    )
+    K = skew(rvec)
     eye = np.broadcast_to(np.eye(3), K.shape)
     return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices ``[v]_x``, shape (..., 3) -> (..., 3, 3)."""
+    v = np.asarray(v, dtype=np.float64)
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack(
+        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
+    )
+
+
+def rotation_jacobian(rvec: np.ndarray) -> np.ndarray:
+    """Left Jacobian ``J_l`` of SO(3) at a rotation vector.
+
+    ``R(r + e) = Exp(J_l(r) e) R(r)`` to first order, so for a point ``X``
+    ``d(R(r) X)/dr = -[R(r) X]_x J_l(r)``.
+
+    Parameters
+    ----------
+    rvec : ndarray, shape (..., 3), rad
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+
+    Notes
+    -----
+    ``J_l = I + (1 - cos t)/t^2 K + (t - sin t)/t^3 K^2`` with ``K = [r]_x`` and
+    ``t = |r|``; the series ``I + K/2 + K^2/6`` below 1e-4 rad.
+    """
+    rvec = np.asarray(rvec, dtype=np.float64)
+    t = np.linalg.norm(rvec, axis=-1)
+    small = t < 1e-4
+    ts = np.where(small, 1.0, t)
+    a = np.where(small, 0.5 - t**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
+    b = np.where(small, 1.0 / 6.0 - t**2 / 120.0, (ts - np.sin(ts)) / ts**3)
+    K = skew(rvec)
+    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
 
 
 def rotation_vector(R: np.ndarray) -> np.ndarray:

@@ -31,10 +31,10 @@ import numpy as np
 
 from endomeasure.conventions import Half, in_half
 from endomeasure.errors import BadInputError, CalibrationError
-from endomeasure.geometry.rotations import rotation_matrix
+from endomeasure.geometry.rotations import rotation_jacobian, rotation_matrix, skew
 from endomeasure.models import CameraModel, model_class
 from endomeasure.solvers.covariance import marginal_covariance
-from endomeasure.solvers.reprojection import projector_for, rotation_jacobian, skew
+from endomeasure.solvers.reprojection import projector_for
 
 __all__ = [
     "ViewDetections",

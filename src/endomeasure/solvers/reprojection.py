@@ -20,8 +20,8 @@ from __future__ import annotations
 import numpy as np
 
 from endomeasure.conventions import Half, Status
-from endomeasure.geometry.distortion import distort
-from endomeasure.geometry.rotations import rotation_matrix
+from endomeasure.geometry.distortion import distort, distort_coeff_jacobian, distort_jacobian
+from endomeasure.geometry.rotations import rotation_jacobian, rotation_matrix, skew
 from endomeasure.models.base import CameraModel
 
 __all__ = [
@@ -30,9 +30,6 @@ __all__ = [
     "RaytraceProjector",
     "FiniteDifferenceProjector",
     "projector_for",
-    "distortion_jacobians",
-    "rotation_jacobian",
-    "skew",
 ]
 
 FD_STEP_PARAM = 1e-6
@@ -104,81 +101,6 @@ class Projector:
 # ----- shared closed forms ----------------------------------------------------------------
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices ``[v]_x``, shape (..., 3) -> (..., 3, 3)."""
-    v = np.asarray(v, dtype=np.float64)
-    z = np.zeros(v.shape[:-1])
-    x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack(
-        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
-    )
-
-
-def rotation_jacobian(rvec: np.ndarray) -> np.ndarray:
-    """Left Jacobian ``J_l`` of SO(3) at a rotation vector.
-
-    ``R(r + e) = Exp(J_l(r) e) R(r)`` to first order, so for a point ``X``
-    ``d(R(r) X)/dr = -[R(r) X]_x J_l(r)``.
-
-    Parameters
-    ----------
-    rvec : ndarray, shape (..., 3), rad
-
-    Returns
-    -------
-    ndarray, shape (..., 3, 3)
-
-    Notes
-    -----
-    ``J_l = I + (1 - cos t)/t^2 K + (t - sin t)/t^3 K^2`` with ``K = [r]_x`` and
-    ``t = |r|``; the series ``I + K/2 + K^2/6`` below 1e-4 rad.
-    """
-    rvec = np.asarray(rvec, dtype=np.float64)
-    t = np.linalg.norm(rvec, axis=-1)
-    small = t < 1e-4
-    ts = np.where(small, 1.0, t)
-    a = np.where(small, 0.5 - t**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
-    b = np.where(small, 1.0 / 6.0 - t**2 / 120.0, (ts - np.sin(ts)) / ts**3)
-    K = skew(rvec)
-    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
-
-
-def distortion_jacobians(x: np.ndarray, y: np.ndarray, coeffs) -> tuple[np.ndarray, np.ndarray]:
-    """Derivatives of Brown distortion (:func:`~endomeasure.geometry.distortion.distort`).
-
-    Parameters
-    ----------
-    x, y : ndarray, shape (N,)
-        Undistorted normalised coordinates.
-    coeffs : sequence of 5 floats
-        ``k1, k2, p1, p2, k3``.
-
-    Returns
-    -------
-    d_dxy : ndarray, shape (N, 2, 2)
-        ``d(xd, yd)/d(x, y)``.
-    d_dcoeffs : ndarray, shape (N, 2, 5)
-        ``d(xd, yd)/d(k1, k2, p1, p2, k3)``.
-    """
-    k1, k2, p1, p2, k3 = coeffs
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-    d_dxy = np.empty(x.shape + (2, 2))
-    d_dxy[:, 0, 0] = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
-    d_dxy[:, 0, 1] = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
-    d_dxy[:, 1, 0] = d_dxy[:, 0, 1]
-    d_dxy[:, 1, 1] = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
-    r4 = r2 * r2
-    d_dc = np.empty(x.shape + (2, 5))
-    d_dc[:, 0, 0], d_dc[:, 1, 0] = x * r2, y * r2
-    d_dc[:, 0, 1], d_dc[:, 1, 1] = x * r4, y * r4
-    d_dc[:, 0, 2], d_dc[:, 1, 2] = 2.0 * x * y, r2 + 2.0 * y * y
-    d_dc[:, 0, 3], d_dc[:, 1, 3] = r2 + 2.0 * x * x, 2.0 * x * y
-    d_dc[:, 0, 4], d_dc[:, 1, 4] = x * r4 * r2, y * r4 * r2
-    return d_dxy, d_dc
-
-
 def _lens_pixels_and_jacobians(x, y, fx, fy, cx, cy, coeffs):
     """Pixels of undistorted lens coordinates and their derivatives.
 
@@ -187,7 +109,8 @@ def _lens_pixels_and_jacobians(x, y, fx, fy, cx, cy, coeffs):
     """
     xd, yd = distort(x, y, coeffs)
     q = np.stack([fx * xd + cx, fy * yd + cy], axis=-1)
-    d_dxy, d_dc = distortion_jacobians(x, y, coeffs)
+    j11, j12, j21, j22 = distort_jacobian(x, y, coeffs)
+    d_dxy = np.stack([np.stack([j11, j12], -1), np.stack([j21, j22], -1)], -2)
     f = np.array([fx, fy])[None, :, None]
     dq_dxy = f * d_dxy
     dq_dintr = np.zeros(x.shape + (2, 9))
@@ -195,7 +118,7 @@ def _lens_pixels_and_jacobians(x, y, fx, fy, cx, cy, coeffs):
     dq_dintr[:, 1, 1] = yd
     dq_dintr[:, 0, 2] = 1.0
     dq_dintr[:, 1, 3] = 1.0
-    dq_dintr[:, :, 4:9] = f * d_dc  # k1 k2 p1 p2 k3
+    dq_dintr[:, :, 4:9] = f * distort_coeff_jacobian(x, y)  # k1 k2 p1 p2 k3
     return q, dq_dxy, dq_dintr
 
 
