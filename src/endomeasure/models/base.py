@@ -195,14 +195,8 @@ class CameraModel(abc.ABC):
             half, NaN input or failed inversions get NaN rays and a status.
         """
         half = Half.parse(half)
-        pixels = np.asarray(pixels, dtype=np.float64)
-        if pixels.shape[-1:] != (2,):
-            raise ValueError(f"pixels must have shape (..., 2), got {pixels.shape}")
-        shape = pixels.shape[:-1]
-        flat = pixels.reshape(-1, 2)
-        status = np.full(flat.shape[0], Status.OK, dtype=STATUS_DTYPE)
-        finite = np.all(np.isfinite(flat), axis=-1)
-        status[~finite] = Status.INVALID_INPUT
+        flat, shape, status = _flat_input(pixels, 2, "pixels")
+        finite = status == Status.OK
         inside = in_half(flat, half, self.config.split, self.config.image_size)
         status[finite & ~inside] = Status.OUTSIDE_HALF
         origins = np.full((flat.shape[0], 3), np.nan)
@@ -248,14 +242,8 @@ class CameraModel(abc.ABC):
 
     def _forward(self, points, half, jacobian: bool):
         half = Half.parse(half)
-        points = np.asarray(points, dtype=np.float64)
-        if points.shape[-1:] != (3,):
-            raise ValueError(f"points must have shape (..., 3), got {points.shape}")
-        shape = points.shape[:-1]
-        flat = points.reshape(-1, 3)
-        status = np.full(flat.shape[0], Status.OK, dtype=STATUS_DTYPE)
-        finite = np.all(np.isfinite(flat), axis=-1)
-        status[~finite] = Status.INVALID_INPUT
+        flat, shape, status = _flat_input(points, 3, "points")
+        finite = status == Status.OK
         pixels = np.full((flat.shape[0], 2), np.nan)
         dq_dp = np.full((flat.shape[0], 2, 3), np.nan) if jacobian else None
         todo = np.flatnonzero(finite)
@@ -299,3 +287,15 @@ class CameraModel(abc.ABC):
     @abc.abstractmethod
     def _project(self, points: np.ndarray, half: Half) -> tuple[np.ndarray, np.ndarray]:
         """Pixels of finite points, shape (N, 3) -> (N, 2), (N,); half check is done here."""
+
+
+def _flat_input(values, width: int, name: str) -> tuple[np.ndarray, tuple, np.ndarray]:
+    """``values (..., width)`` as float64 rows ``(N, width)``, the leading shape, and a
+    status per row (``INVALID_INPUT`` where any entry is NaN or infinite)."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape[-1:] != (width,):
+        raise ValueError(f"{name} must have shape (..., {width}), got {values.shape}")
+    flat = values.reshape(-1, width)
+    status = np.full(flat.shape[0], Status.OK, dtype=STATUS_DTYPE)
+    status[~np.all(np.isfinite(flat), axis=-1)] = Status.INVALID_INPUT
+    return flat, values.shape[:-1], status
