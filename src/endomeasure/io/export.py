@@ -40,7 +40,11 @@ def model_document(model, extras: dict[str, Any] | None = None) -> dict[str, Any
 
 
 def _atomic_write(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it over ``path``.
+
+    The temporary name keeps ``path``'s suffix (``cv2.FileStorage`` picks the format by it).
+    """
+    tmp = path.with_name(f".tmp{os.getpid()}-{path.name}")
     try:
         write(tmp)
         os.replace(tmp, path)
@@ -100,14 +104,7 @@ def export_model(model, fmt: str, out: str | Path, extras: dict[str, Any] | None
     suffix_ok = out.suffix.lower() in (".yml", ".yaml")
     if not suffix_ok:
         raise BadInputError("an OpenCV YAML file must end in .yml or .yaml", path=str(out))
-    # cv2.FileStorage chooses the format by the name's suffix: keep it on the temporary file
-    tmp = out.with_name(f".tmp{os.getpid()}-{out.name}")
-    try:
-        write(tmp)
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    _atomic_write(out, write)
     return out
 
 
