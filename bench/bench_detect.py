@@ -353,7 +353,8 @@ def main(argv: list[str] | None = None) -> int:
     ref.add_argument("--sets", default=None, help="comma-separated simulator output folders")
     argv = sys.argv[1:] if argv is None else argv
     if not argv:
-        main(["accuracy", "--images", "6", "--methods", "sb,sb-accuracy,classic-subpix,sb-subpix"])
+        methods = "sb,classic-subpix,sb-subpix,sb-classic-symmetry"
+        main(["accuracy", "--images", "6", "--methods", methods])
         return main(["throughput"])
     args = parser.parse_args(argv)
     if args.command == "throughput":
