@@ -366,7 +366,10 @@ def simulate(
         str, typer.Option("--preset", help="Built-in preset name or a preset JSON file.")
     ] = "default",
     sets: Annotated[
-        str, typer.Option("--set", help="Comma-separated image sets: calib, test, scene.")
+        str,
+        typer.Option(
+            "--set", help="Comma-separated image sets: calib, test, scene, charuco (not default)."
+        ),
     ] = "calib,test,scene",
     seed: Annotated[int, typer.Option("--seed", help="Seed of poses and noise (>= 0).")] = 0,
     noise_free: Annotated[
@@ -520,7 +523,10 @@ def measure(
     ] = None,
     right: Annotated[
         list[str] | None,
-        typer.Option("--right", help="The same point in the right half, U,V px (repeat)."),
+        typer.Option(
+            "--right",
+            help="The same point in the right half, U,V px (repeat); leave out to find it.",
+        ),
     ] = None,
     kind: Annotated[
         str, typer.Option("--kind", help="length, point-line, depth, area or polyline.")
@@ -544,14 +550,26 @@ def measure(
         float, typer.Option("--zone-mm", help="Board test: width of the distance zones, mm.")
     ] = 5.0,
     plot: Annotated[
-        Path | None, typer.Option("--plot", help="Board test: PNG of the errors (paper Fig. 4).")
+        Path | None,
+        typer.Option(
+            "--plot",
+            help="PNG: the automatic matches and epipolar curves, or the board test's "
+            "errors (paper Fig. 4).",
+        ),
     ] = None,
+    patch: Annotated[
+        int,
+        typer.Option("--patch", help="Automatic matching: correlation patch side, px (odd)."),
+    ] = 15,
     json_output: JsonOption = False,
 ) -> None:
     """Triangulate points and measure them with a predicted +-, or run the board test.
 
-    A measurement: --image, one --left and one --right per point, --kind. It is stored
-    in the session with its uncertainty (unscented transform of the image noise and the
+    A measurement: --image, one --left and one --right per point, --kind. Without --right
+    each left point's match is found in the right half automatically (and the other way
+    round without --left); a point the search refuses (untextured, repeated texture,
+    not seen by both halves) stops the measurement with exit 1. It is stored in the
+    session with its uncertainty (unscented transform of the image noise and the
     calibration covariance). --board-test: x-/y-segments, point-to-plane distances and
     square areas on every test image, mean error and std per zone, kind and model.
     """
@@ -570,26 +588,82 @@ def measure(
         return
 
     from endomeasure.errors import BadInputError
-    from endomeasure.pipeline.measure import measure_points, parse_pixel
+    from endomeasure.pipeline.measure import MatchRefusedError, measure_points, parse_pixel
 
     if image is None:
         raise BadInputError("a measurement needs --image NAME", hint="or use --board-test")
-    if not left:
-        raise BadInputError("a measurement needs its points: --left U,V --right U,V per point")
-    report = measure_points(
-        session,
-        model,
-        image,
-        [parse_pixel(t) for t in left],
-        None if not right else [parse_pixel(t) for t in right],
-        kind,
-        warn_percent=warn_percent,
-        sigma=sigma,
-    )
+    if not left and not right:
+        raise BadInputError(
+            "a measurement needs its points: --left U,V per point (and optionally --right U,V)"
+        )
+    try:
+        report = measure_points(
+            session,
+            model,
+            image,
+            None if not left else [parse_pixel(t) for t in left],
+            None if not right else [parse_pixel(t) for t in right],
+            kind,
+            warn_percent=warn_percent,
+            sigma=sigma,
+            patch=patch,
+            plot=plot,
+        )
+    except MatchRefusedError as exc:
+        # show what the search found before the one-line error (exit 1)
+        if json_output:
+            _print_json(
+                {
+                    "session": str(session),
+                    "model": model,
+                    "image": image,
+                    "kind": kind,
+                    "measured": False,
+                    "error": exc.one_line(),
+                    "matches": [m.to_dict() for m in exc.matches],
+                    "plot": exc.plot,
+                }
+            )
+        else:
+            console = _stderr_console()
+            _render_matches(console, exc.matches)
+            if exc.plot:
+                console.print(f"plot: {exc.plot}")
+        raise
     if json_output:
-        _print_json(report.to_dict())
+        document = report.to_dict()
+        document["measured"] = True
+        _print_json(document)
         return
-    _render_measurement(_stderr_console(), report)
+    console = _stderr_console()
+    if report.matched:
+        _render_matches(console, [p.match for p in report.points])
+    _render_measurement(console, report)
+    if report.plot:
+        console.print(f"plot: {report.plot}")
+
+
+def _render_matches(console: Console, matches: list[Any]) -> None:
+    from rich.table import Table
+
+    half = matches[0].half.label if matches else "left"
+    other = "right" if half == "left" else "left"
+    table = Table(title=f"automatic matches in the {other} half", title_justify="left")
+    for column in ("point", f"{half} px", f"{other} px", "score", "precision px",
+                   "ray gap mm", "status"):  # fmt: skip
+        table.add_column(column, justify="left" if column == "status" else "right")
+    for i, m in enumerate(matches, 1):
+        found = "{:.2f},{:.2f}".format(*m.match) if m.ok else "-"
+        table.add_row(
+            str(i),
+            "{:.2f},{:.2f}".format(*m.pixel),
+            found,
+            "-" if m.score != m.score else f"{m.score:.3f}",
+            "-" if m.precision_px != m.precision_px else f"{m.precision_px:.3f}",
+            f"{m.ray_gap_mm:.4f}" if m.ok else "-",
+            m.status.value if m.ok else f"[red]{m.status.value}[/red]",
+        )
+    console.print(table)
 
 
 def _render_measurement(console: Console, r: Any) -> None:

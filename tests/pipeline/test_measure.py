@@ -205,7 +205,6 @@ def test_warning_above_the_threshold(exact_session):
             ["--kind", "length", "--left", "100,10", "--left", "110,10", "--right", "400,10"],
             "2 --left points but 1 --right",
         ),
-        (["--kind", "length", "--left", "100,10", "--left", "110,10"], "no --right points"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(exact_session, args, message):

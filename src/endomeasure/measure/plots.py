@@ -9,7 +9,9 @@ that draw need it). Each function writes one PNG and returns its path.
 - :func:`plot_predicted_vs_actual` — the paper's Fig. 5: per kind, the actual mean error
   and standard deviation per zone against the predicted ones;
 - :func:`plot_error_map` — the predicted standard deviation of a template measurement
-  over the working volume, one panel per depth plane.
+  over the working volume, one panel per depth plane;
+- :func:`plot_matches` — operator points found automatically in the other half: both
+  halves with the points, their matches and the searched epipolar curves.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["plot_board_test", "plot_error_map", "plot_predicted_vs_actual"]
+__all__ = ["plot_board_test", "plot_error_map", "plot_matches", "plot_predicted_vs_actual"]
 
 _UNITS = {"x-segment": "mm", "y-segment": "mm", "point-plane": "mm", "area": "mm²"}
 _KINDS = ("x-segment", "y-segment", "point-plane", "area")
@@ -196,4 +198,90 @@ def plot_error_map(error_map, path: str | Path, n_panels: int = 4) -> Path:
     ax.set_ylabel(f"predicted std [{unit}]", fontsize=8)
     ax.legend(fontsize=7)
     fig.suptitle(f"predicted std of a {error_map.size_mm:g} mm {error_map.template}")
+    return _save(fig, path)
+
+
+_ZOOM_PX = 24
+"""Half-width of the close-ups of a query point and its match, px (a 15 px patch and
+the curve around it)."""
+_MAX_ZOOMS = 6
+"""Points beyond this many get no close-ups (the overview still shows them)."""
+
+
+def plot_matches(image: np.ndarray, matches: Sequence[Any], path: str | Path, split: int) -> Path:
+    """Both halves with operator points, their matches and the searched epipolar curves.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W) or (H, W, 3)
+        The whole split image.
+    matches : sequence of Match
+        (:mod:`endomeasure.measure.correspondence`), one per point, in order: the query
+        pixel, its half, status, match (NaN if refused), best candidate and curve.
+    path : path
+        PNG to write.
+    split : int
+        First column of the right half (drawn as a line).
+
+    Notes
+    -----
+    Top: the whole image with every query point (circle), its epipolar curve in the
+    other half (the searched samples), and its match (cross) joined to the point by a
+    thin line; refused points in red with their best candidate (if any) and the
+    reason. Below, for up to :data:`_MAX_ZOOMS` points, close-ups of the query's
+    neighbourhood and of the match's (or candidate's).
+    """
+    plt = _pyplot()
+    img = np.asarray(image, dtype=np.float64)
+    grey = img[..., :3].mean(axis=-1) if img.ndim == 3 else img
+    height, width = grey.shape
+    zooms = list(enumerate(matches))[:_MAX_ZOOMS]
+    n_zoom_cols = max(2 * len(zooms), 2)
+    fig = plt.figure(figsize=(max(9.0, 1.6 * n_zoom_cols), 7.8 if zooms else 5.6))
+    rows, ratios = (2, [4, 1.3]) if zooms else (1, [1])
+    grid = fig.add_gridspec(rows, n_zoom_cols, height_ratios=ratios)
+    ax = fig.add_subplot(grid[0, :])
+    vmin, vmax = np.percentile(grey, [0.5, 99.5])
+    ax.imshow(grey, cmap="gray", vmin=vmin, vmax=vmax, interpolation="nearest")
+    ax.axvline(split - 0.5, color="yellow", lw=0.8, ls="--")
+    colours = plt.get_cmap("tab10")
+    for i, m in enumerate(matches):
+        c = colours(i % 10) if m.ok else "red"
+        q = np.asarray(m.pixel)
+        if len(m.curve):
+            ax.plot(m.curve[:, 0], m.curve[:, 1], "-", color=c, lw=0.8, alpha=0.8)
+        ax.plot(*q, "o", mfc="none", mec=c, ms=8, mew=1.4)
+        other = m.match if m.ok else m.candidate
+        if np.all(np.isfinite(other)):
+            ax.plot(*other, "x", color=c, ms=8, mew=1.6)
+            ax.plot([q[0], other[0]], [q[1], other[1]], "-", color=c, lw=0.4, alpha=0.6)
+        label = (
+            f"{i + 1}: score {m.score:.3f}, gap {m.ray_gap_mm * 1e3:.1f} µm"
+            if m.ok
+            else f"{i + 1}: refused ({m.status.value})"
+        )
+        ax.annotate(label, q, xytext=(6, 7), textcoords="offset points", color=c, fontsize=7,
+                    bbox=dict(boxstyle="round,pad=0.15", fc="black", alpha=0.45, lw=0))  # fmt: skip
+    ax.set_xlim(-0.5, width - 0.5)
+    ax.set_ylim(height - 0.5, -0.5)
+    ax.set_title("operator points (o), matches (x) and epipolar curves; red: refused", fontsize=9)
+    for k, (i, m) in enumerate(zooms):
+        c = colours(i % 10) if m.ok else "red"
+        other = m.match if m.ok else m.candidate
+        for j, (centre, what) in enumerate(((m.pixel, "point"), (other, "match"))):
+            zax = fig.add_subplot(grid[1, 2 * k + j])
+            zax.set_xticks([])
+            zax.set_yticks([])
+            zax.set_title(f"{i + 1} {what}" if m.ok or j == 0 else f"{i + 1} candidate",
+                          fontsize=7, color=c)  # fmt: skip
+            if not np.all(np.isfinite(centre)):
+                zax.text(0.5, 0.5, "none", ha="center", va="center", transform=zax.transAxes)
+                continue
+            u, v = np.asarray(centre, dtype=np.float64)
+            zax.imshow(grey, cmap="gray", vmin=vmin, vmax=vmax, interpolation="nearest")
+            if j == 1 and len(m.curve):
+                zax.plot(m.curve[:, 0], m.curve[:, 1], "-", color=c, lw=0.8)
+            zax.plot(u, v, "+", color=c, ms=10, mew=1.2)
+            zax.set_xlim(u - _ZOOM_PX, u + _ZOOM_PX)
+            zax.set_ylim(v + _ZOOM_PX, v - _ZOOM_PX)
     return _save(fig, path)

@@ -25,10 +25,23 @@ uncertainty. Above ``warn_percent`` (default :data:`DEFAULT_WARN_PERCENT`) the r
 carries a warning. For a depth near zero the index is large by construction: a dent of
 0.05 mm measured with +-0.1 mm is not a measurement of that dent.
 
-Right-half points
------------------
-``right=None`` means "find the matches automatically" (issue 9); :func:`_match_right`
-is where that search plugs in. Until it does, a measurement needs both halves' points.
+Operator points (one half only)
+-------------------------------
+``right=None`` (or ``left=None``) means "find the matches automatically" (issue 9): every
+given point is searched in the other half along its epipolar curve
+(:func:`endomeasure.measure.correspondence.find_matches`, patch size ``patch``). A point
+the search refuses (untextured, ambiguous, not seen by the other half, low score) stops
+the measurement: :class:`MatchRefusedError` (exit 1) names the point and the reason,
+carries every point's :class:`~endomeasure.measure.correspondence.Match` for the report,
+and nothing is stored. ``plot`` draws both halves with the points, their matches (or
+refused candidates) and the searched epipolar curves, refused or not.
+
+The uncertainty input of a matched point is not the calibration-residual sigma of a
+detected corner. The clicked pixel *defines* the point (standard deviation 0); its match
+is uncertain by the search's predicted precision ``precision_px`` (the standard deviation
+of the relative shift of two noisy patches, from the patch's texture and the image
+noise), applied to both coordinates of the matched pixel. ``sigma`` (``--sigma``)
+overrides this with one value for every coordinate of both halves.
 """
 
 from __future__ import annotations
@@ -44,14 +57,16 @@ from typing import Any
 import numpy as np
 
 from endomeasure.conventions import Half, Status, in_half
-from endomeasure.errors import BadInputError
+from endomeasure.errors import BadInputError, GoalNotMetError
 
 __all__ = [
+    "DEFAULT_PATCH_PX",
     "DEFAULT_WARN_PERCENT",
     "DEFAULT_ZONE_MM",
     "BoardTestReport",
     "CalibratedModel",
     "MeasureReport",
+    "MatchRefusedError",
     "MeasuredPoint",
     "board_test",
     "load_board_test",
@@ -65,6 +80,10 @@ DEFAULT_WARN_PERCENT = 5.0
 stereo measurements in their working range; the paper's raytrace model reaches better
 than 1 % on 1 mm segments at 12-27 mm, so a warning means the measurement is far from
 what the probe can do (too far, too short, at the field edge, or a poor match)."""
+
+DEFAULT_PATCH_PX = 15
+"""Correlation patch of the automatic search (px): the search's own default, about
+0.8 mm at 16 mm, enough texture on the simulator's metal for 0.02-0.03 px precision."""
 
 DEFAULT_ZONE_MM = 5.0
 """Width of the distance zones of the board test (mm): the paper's Fig. 4 uses zones of
@@ -175,13 +194,66 @@ def _check_pixels(pixels: np.ndarray, half: Half, model, label: str) -> None:
         )
 
 
-def _match_right(model, image: np.ndarray, left: np.ndarray) -> np.ndarray:
-    """Right-half matches of left-half points: the hook of the automatic search (issue 9)."""
-    del model, image, left
-    raise BadInputError(
-        "no --right points given, and this version cannot find them automatically",
-        hint="give one --right U,V for every --left U,V",
+class MatchRefusedError(GoalNotMetError):
+    """The automatic search refused at least one operator point (exit 1).
+
+    Attributes
+    ----------
+    matches : list of Match
+        Every point's search result, refused or not, in the order given.
+    plot : str or None
+        The picture written before the refusal (``plot=``), if any.
+    """
+
+    def __init__(self, what: str, matches: list, *, hint: str | None = None, plot=None):
+        super().__init__(what, hint=hint)
+        self.matches = matches
+        self.plot = plot
+
+
+def _match_other_half(model, image: np.ndarray, query: np.ndarray, half: Half, patch: int) -> list:
+    """Matches in the other half of operator points given in ``half`` (issue 9)."""
+    from endomeasure.measure.correspondence import find_matches
+
+    return find_matches(model, image, query, half, patch=patch)
+
+
+def _refusal(matches: list, half: Half, plot) -> MatchRefusedError:
+    refused = [(i, m) for i, m in enumerate(matches) if not m.ok]
+    reasons = "; ".join(f"point {i + 1}: {m.status.value}: {m.message}" for i, m in refused)
+    other = "right" if half is Half.LEFT else "left"
+    return MatchRefusedError(
+        f"{len(refused)} of {len(matches)} points not matched in the {other} half, nothing "
+        f"measured ({reasons})",
+        matches,
+        hint=f"move the point onto texture both halves see, or give its match with --{other} U,V",
+        plot=plot,
     )
+
+
+def _predict_with_pixel_std(model, kind: str, ql, qr, pixel_std: np.ndarray, param_cov):
+    """Scaled-UT prediction with a separate standard deviation for every pixel coordinate.
+
+    ``pixel_std`` (n, 2): per point, the standard deviation of the left and of the right
+    pixel (px, both coordinates, independent). Same black box, sigma-point weights and
+    per-kind beta as :func:`~endomeasure.measure.predict.predict_measurement_error`, whose
+    input covariance allows one sigma only.
+    """
+    from endomeasure.measure.predict import UT_BETA, measurement_function
+    from endomeasure.solvers.uncertainty import propagate
+
+    n = ql.shape[0]
+    f = measurement_function(model, kind, n, with_params=param_cov is not None)
+    variances = np.repeat(np.asarray(pixel_std, dtype=np.float64) ** 2, 2, axis=1).ravel()
+    size = 4 * n + (0 if param_cov is None else param_cov.shape[0])
+    cov = np.zeros((size, size))
+    cov[: 4 * n, : 4 * n] = np.diag(variances)  # order u_L, v_L, u_R, v_R per point
+    blocks = {"image": slice(0, 4 * n)}
+    if param_cov is not None:
+        cov[4 * n :, 4 * n :] = param_cov
+        blocks["calibration"] = slice(4 * n, size)
+    options = {"beta": UT_BETA[kind]} if kind in UT_BETA else {}
+    return propagate(f, f.inputs(ql[None], qr[None]), cov, "ut", blocks=blocks, **options)
 
 
 # ----- an operator's measurement --------------------------------------------------------------
@@ -196,15 +268,21 @@ class MeasuredPoint:
     xyz: tuple[float, float, float]
     gap_mm: float
     rms_px: float
+    match: Any = None
+    """The automatic search's :class:`~endomeasure.measure.correspondence.Match` when
+    this point's other-half pixel was found by it, else None."""
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        out = {
             "left_px": list(self.left),
             "right_px": list(self.right),
             "xyz_mm": list(self.xyz),
             "ray_gap_mm": self.gap_mm,
             "reprojection_rms_px": self.rms_px,
         }
+        if self.match is not None:
+            out["match"] = self.match.to_dict()
+        return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -229,6 +307,12 @@ class MeasureReport:
     sigma_px: float
     sigma_source: str
     method: str
+    plot: str | None = None
+
+    @property
+    def matched(self) -> bool:
+        """True when the other half's pixels were found by the automatic search."""
+        return any(p.match is not None for p in self.points)
 
     @property
     def warning(self) -> bool:
@@ -236,9 +320,10 @@ class MeasureReport:
         return not (self.relative_percent <= self.warn_percent)
 
     def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         d["points"] = [p.to_dict() for p in self.points]
         d["warning"] = self.warning
+        d["matched"] = self.matched
         return d
 
 
@@ -256,13 +341,15 @@ def measure_points(
     session: str | Path,
     model_name: str,
     image: str,
-    left: Sequence[tuple[float, float]],
+    left: Sequence[tuple[float, float]] | None,
     right: Sequence[tuple[float, float]] | None,
     kind: str,
     *,
     warn_percent: float = DEFAULT_WARN_PERCENT,
     sigma: float | None = None,
     store: bool = True,
+    patch: int = DEFAULT_PATCH_PX,
+    plot: str | Path | None = None,
 ) -> MeasureReport:
     """Triangulate an operator's points, measure, predict the uncertainty and store it.
 
@@ -273,21 +360,32 @@ def measure_points(
         A model stored by ``calibrate``.
     image : str
         Name of an image in the session (the points are on it).
-    left, right : sequence of (u, v), px
-        The same points in each half (full-image pixels); ``right=None`` asks for the
-        automatic match (see the module docstring).
+    left, right : sequence of (u, v), px, or None
+        The same points in each half (full-image pixels); one of them None asks for the
+        automatic match of the other's points (see the module docstring).
     kind : str
         One of :data:`endomeasure.measure.kinds.KINDS`.
     warn_percent : float
         Accuracy-index threshold, percent.
     sigma : float, optional, px
-        Image noise; default: from the calibration residuals.
+        Image noise of every coordinate; default: from the calibration residuals, or
+        for matched points the search's precision (module docstring).
     store : bool
         Write the measurement record.
+    patch : int, px
+        Side of the correlation patch of the automatic search (odd, >= 5).
+    plot : path, optional
+        PNG of both halves with the points, matches and epipolar curves (automatic
+        search only; written also when a point is refused).
 
     Returns
     -------
     MeasureReport
+
+    Raises
+    ------
+    MatchRefusedError
+        The search refused a point (nothing is stored).
     """
     from endomeasure.io.session import Record, edit_session, open_session
     from endomeasure.measure.kinds import kind_spec, validate
@@ -299,13 +397,26 @@ def measure_points(
         raise BadInputError(
             f"the warning threshold must be a positive percentage, not {warn_percent}"
         )
-    ql = np.asarray(left, dtype=np.float64).reshape(-1, 2)
+    if left is None and right is None:
+        raise BadInputError("a measurement needs its points: --left U,V and/or --right U,V")
+    search = left is None or right is None
+    query_half = Half.RIGHT if left is None else Half.LEFT  # with both given: the left
+    if plot is not None and not search:
+        raise BadInputError(
+            "--plot draws the automatic search; it has nothing to draw when both "
+            "--left and --right points are given",
+            hint="leave out the --right (or --left) points, or use --board-test --plot",
+        )
+    given = {
+        Half.LEFT: None if left is None else np.asarray(left, dtype=np.float64).reshape(-1, 2),
+        Half.RIGHT: None if right is None else np.asarray(right, dtype=np.float64).reshape(-1, 2),
+    }
     with open_session(session) as reader:
         reader.image_info(image)  # an unknown image is a BadInputError listing the images
         cm = load_calibrated_model(reader, model_name, session)
-        pixels_of_image = reader.image(image) if right is None else None
+        pixels_of_image = reader.image(image) if search else None
     model = cm.model
-    n = ql.shape[0]
+    n = given[query_half].shape[0]
     if n < spec.min_points or (spec.max_points is not None and n > spec.max_points):
         need = (
             f"exactly {spec.min_points}"
@@ -316,17 +427,28 @@ def measure_points(
             f"{kind} needs {need} points, got {n}",
             hint=f"give {need} --left/--right pairs ({spec.description})",
         )
-    _check_pixels(ql, Half.LEFT, model, "left")
-    if right is None:
-        qr = _match_right(model, pixels_of_image, ql)
+    _check_pixels(given[query_half], query_half, model, query_half.label)
+    matches = None
+    written = None
+    if search:
+        matches = _match_other_half(model, pixels_of_image, given[query_half], query_half, patch)
+        if plot is not None:
+            from endomeasure.measure.plots import plot_matches
+
+            written = str(plot_matches(pixels_of_image, matches, plot, model.config.split))
+        if not all(m.ok for m in matches):
+            raise _refusal(matches, query_half, written)
+        ql = np.array([m.left for m in matches])
+        qr = np.array([m.right for m in matches])
     else:
-        qr = np.asarray(right, dtype=np.float64).reshape(-1, 2)
+        ql, qr = given[Half.LEFT], given[Half.RIGHT]
         if qr.shape[0] != n:
             raise BadInputError(
                 f"{n} --left points but {qr.shape[0]} --right points",
                 hint="give one --right U,V for every --left U,V, in the same order",
             )
     _check_pixels(qr, Half.RIGHT, model, "right")
+    _check_pixels(ql, Half.LEFT, model, "left")
 
     tri = triangulate(model, ql, qr, "ml")
     for i in np.flatnonzero(tri.status != Status.OK):
@@ -338,7 +460,14 @@ def measure_points(
     points = validate(kind, tri.points)
     value = float(spec.function(points))
 
-    if sigma is None:
+    pixel_std = None
+    if sigma is None and search:
+        # the clicked pixel defines the point; its match carries the search's precision
+        pixel_std = np.zeros((n, 2))
+        pixel_std[:, 1 if query_half is Half.LEFT else 0] = [m.precision_px for m in matches]
+        sigma_px = float(pixel_std.max())
+        source = f"match precision, {query_half.label} pixels exact"
+    elif sigma is None:
         if cm.sigma_px is None:
             raise BadInputError(
                 f"model {model_name!r} carries no residual variance to estimate the image noise",
@@ -349,9 +478,12 @@ def measure_points(
         if not (math.isfinite(sigma) and sigma >= 0):
             raise BadInputError(f"sigma must be a non-negative number of pixels, not {sigma}")
         sigma_px, source = float(sigma), "given"
-    pred = predict_measurement_error(
-        model, kind, ql, qr, sigma=sigma_px, param_cov=cm.param_cov, method="ut"
-    )
+    if pixel_std is None:
+        pred = predict_measurement_error(
+            model, kind, ql, qr, sigma=sigma_px, param_cov=cm.param_cov, method="ut"
+        )
+    else:
+        pred = _predict_with_pixel_std(model, kind, ql, qr, pixel_std, cm.param_cov)
     bias, std = float(pred.bias[0]), float(pred.std[0])
     std_image = float(pred.parts["image"][1][0]) if "image" in pred.parts else math.nan
     std_cal = float(pred.parts["calibration"][1][0]) if "calibration" in pred.parts else math.nan
@@ -364,6 +496,7 @@ def measure_points(
             tuple(map(float, tri.points[i])),
             float(tri.gap[i]),
             float(tri.rms[i]),
+            None if matches is None else matches[i],
         )
         for i in range(n)
     ]
@@ -401,6 +534,7 @@ def measure_points(
                         "points": tri.points,
                         "ray_gap": tri.gap,
                         "reprojection_rms": tri.rms,
+                        **_match_arrays(matches, pixel_std),
                     },
                     units={
                         "value": spec.unit,
@@ -417,6 +551,7 @@ def measure_points(
                         "points": "mm",
                         "ray_gap": "mm",
                         "reprojection_rms": "px",
+                        **({} if matches is None else {"pixel_std": "px"}),
                     },
                 )
             )
@@ -439,7 +574,22 @@ def measure_points(
         sigma_px=sigma_px,
         sigma_source=source,
         method="ut",
+        plot=written,
     )
+
+
+def _match_arrays(matches, pixel_std) -> dict[str, np.ndarray]:
+    """What the stored record keeps of an automatic search (nothing without one)."""
+    if matches is None:
+        return {}
+    out = {
+        "match_query_half": np.array([m.half.label for m in matches], dtype=object),
+        "match_score": np.array([m.score for m in matches]),
+        "match_precision": np.array([m.precision_px for m in matches]),
+    }
+    if pixel_std is not None:
+        out["pixel_std"] = pixel_std
+    return out
 
 
 # ----- the board test ---------------------------------------------------------------------------
