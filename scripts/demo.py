@@ -8,7 +8,8 @@ Runs the command-line tool exactly as a user would, on the rendered images in
 2. ``calibrate --model all`` (the pinhole pair and the ray-tracing model side by side);
 3. ``measure --board-test --model all``: the paper's test-target evaluation per zone;
 4. ``predict-error --board-test``: predicted against actual errors;
-5. ``measure`` a distance between two marks on a scene image, with its predicted +-;
+5. ``measure`` a distance between two marks on a scene image, clicking only the left
+   half (the matches in the right half are found automatically), with its predicted +-;
 6. ``info``: what the session now holds.
 
 Usage: ``python scripts/demo.py [OUT_DIR]`` (default ``out/demo``). Exits with the first
@@ -36,17 +37,17 @@ def step(title: str, *args: str, ok_codes: tuple[int, ...] = (0,)) -> None:
         sys.exit(code)
 
 
-def scene_points(image: str) -> tuple[list[str], list[str], float]:
-    """The true pixels of the two marks farthest apart on a scene image, and their distance."""
+def scene_points(image: str) -> tuple[list[str], float]:
+    """The left-half pixels of the two marks farthest apart on a scene image (where an
+    operator would click), and their true distance."""
     truth = load_truth(SAMPLES, image)
     best = max(truth["distances"], key=lambda d: d["distance_mm"])
     ids = truth["marks"]["ids"]
-    left, right = [], []
-    for mark in (best["a"], best["b"]):
-        k = ids.index(mark)
-        left.append("{:.3f},{:.3f}".format(*truth["marks"]["pixels"]["left"][k]))
-        right.append("{:.3f},{:.3f}".format(*truth["marks"]["pixels"]["right"][k]))
-    return left, right, best["distance_mm"]
+    left = [
+        "{:.1f},{:.1f}".format(*truth["marks"]["pixels"]["left"][ids.index(mark)])
+        for mark in (best["a"], best["b"])
+    ]
+    return left, best["distance_mm"]
 
 
 def main() -> None:
@@ -71,14 +72,13 @@ def main() -> None:
     step("predicted against actual errors (paper Fig. 5)", "predict-error", session,
          "--board-test", "--model", "raytrace", "--plot", str(out / "predicted.png"))  # fmt: skip
     scene = sorted(p.stem for p in (SAMPLES / "scene").glob("*.png"))[0]
-    left, right, true_mm = scene_points(scene)
+    left, true_mm = scene_points(scene)
     print(f"\n(true distance between the two marks: {true_mm:.4f} mm)")
-    args = ["measure", session, "--image", scene, "--kind", "length"]
+    args = ["measure", session, "--image", scene, "--kind", "length",
+            "--plot", str(out / "matches.png")]  # fmt: skip
     for u_v in left:
         args += ["--left", u_v]
-    for u_v in right:
-        args += ["--right", u_v]
-    step(f"a distance on {scene}", *args)
+    step(f"a distance on {scene}, matched automatically in the right half", *args)
     step("what the session holds", "info", session)
     print(f"\nsession and figures in {out}")
 
