@@ -175,11 +175,12 @@ def _spline_coefficients(
 
 def symmetric_corners(
     gray: np.ndarray,
-    grid: np.ndarray,
+    grid: np.ndarray | None,
     start: np.ndarray | None = None,
     *,
     sigma_squares: float = SYMMETRY_SIGMA_SQUARES,
     illumination: bool = True,
+    steps: np.ndarray | None = None,
 ) -> SubpixelResult:
     """Refine chessboard corners to the centres of point symmetry of the image.
 
@@ -196,12 +197,16 @@ def symmetric_corners(
         Window sigma in squares (see :data:`SYMMETRY_SIGMA_SQUARES`).
     illumination : bool
         Fit a linear relative illumination gradient per corner (two more unknowns).
+    steps : ndarray, shape (n, 2, 2), px, optional
+        The local affine map of each corner (as :func:`local_steps` returns it) for
+        corners that do not form a full grid (ChArUco); then ``grid`` may be None and
+        ``start`` (shape (n, 2)) is required.
 
     Returns
     -------
     SubpixelResult
-        ``pixels`` in grid order (``row * cols + col``), with the start where a corner
-        did not converge.
+        ``pixels`` in grid order (``row * cols + col``), or in the order of ``start`` with
+        ``steps``, with the start where a corner did not converge.
 
     Notes
     -----
@@ -210,9 +215,17 @@ def symmetric_corners(
     + G(c-h))`` (``G`` the spline's gradient) and ``dr/dk = -h S``. Each Gauss-Newton
     step solves the 4 x 4 (or 2 x 2) weighted normal equations of every corner at once.
     """
-    grid = np.asarray(grid, dtype=np.float64)
-    steps = local_steps(grid)
-    c = grid.reshape(-1, 2).copy() if start is None else np.array(start, dtype=np.float64)
+    if steps is None:
+        grid = np.asarray(grid, dtype=np.float64)
+        steps = local_steps(grid)
+        c = grid.reshape(-1, 2).copy() if start is None else np.array(start, dtype=np.float64)
+    else:
+        if start is None:
+            raise ValueError("symmetric_corners with steps needs the start points")
+        steps = np.asarray(steps, dtype=np.float64)
+        c = np.array(start, dtype=np.float64).reshape(-1, 2)
+        if steps.shape != (len(c), 2, 2):
+            raise ValueError(f"steps must have shape ({len(c)}, 2, 2), not {steps.shape}")
     start_points = c.copy()
     n = len(c)
     window = _window(steps, sigma_squares)

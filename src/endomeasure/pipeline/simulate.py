@@ -5,7 +5,7 @@ Output layout (documented in ``docs/simulator.md``)::
     OUT_DIR/simulation.json          manifest: preset, truth optics, seed, image list
     OUT_DIR/calib/calib_000.png      8-bit grey image, both halves side by side
     OUT_DIR/calib/calib_000.json     its ground truth
-    OUT_DIR/test/...  OUT_DIR/scene/...
+    OUT_DIR/test/...  OUT_DIR/scene/...  OUT_DIR/charuco/...
 
 Deterministic for a seed: poses come from a generator per set, sensor noise from a
 generator per image, both derived from the seed.
@@ -109,7 +109,8 @@ def simulate(
     preset : str or path-like
         A built-in preset name or a preset JSON file.
     sets : str or iterable of str
-        Any of ``calib``, ``test``, ``scene``.
+        Any of ``calib``, ``test``, ``scene``, ``charuco`` (the ChArUco set is not
+        rendered by default).
     seed : int
         Non-negative; the same seed gives the same images, byte for byte.
     noise_free : bool
@@ -128,7 +129,7 @@ def simulate(
     """
     import cv2
 
-    from endomeasure.simulate.preset import load_preset
+    from endomeasure.simulate.preset import data_digest, load_preset, restrict_to_sets
     from endomeasure.simulate.render import render
     from endomeasure.simulate.scenes import plan_set
     from endomeasure.simulate.truth import image_truth
@@ -192,35 +193,41 @@ def simulate(
                 "fully_visible": fully if name != "scene" else None,
                 "files": [e["image"] for e in entries],
             }
+        # keep the sets of earlier runs that this run did not render, when they were made
+        # by the same preset data (as far as those sets depend on it), seed and noise
+        manifest_path = out / MANIFEST_NAME
+        if manifest_path.is_file():
+            try:
+                old = json.loads(manifest_path.read_text())
+                kept = {k: v for k, v in old.get("sets", {}).items() if k not in manifest_sets}
+                same_run = (
+                    old.get("seed") == seed
+                    and old.get("noise_free") == bool(noise_free)
+                    and data_digest(restrict_to_sets(old.get("preset_data", {}), kept))
+                    == data_digest(loaded.for_sets(kept))
+                )
+                if same_run:
+                    manifest_sets.update(kept)
+            except (ValueError, AttributeError, TypeError):
+                pass
+        # the preset as far as the folder's sets depend on it: adding a set to a preset
+        # leaves the manifests of its other sets unchanged
+        recorded = loaded.for_sets(manifest_sets)
         manifest = {
             "format": MANIFEST_FORMAT,
             "version": MANIFEST_VERSION,
             "created_by": f"endomeasure {__version__}",
             "seed": int(seed),
             "noise_free": bool(noise_free),
-            "preset": {"name": loaded.name, "source": loaded.source, "sha256": loaded.digest},
+            "preset": {
+                "name": loaded.name, "source": loaded.source, "sha256": data_digest(recorded)
+            },
             "image_size": list(loaded.image_size),
             "split": loaded.split,
             "truth_model": loaded.truth_model.to_dict(),
-            "sets": manifest_sets,
-            "preset_data": loaded.to_dict(),
-        }
-        # keep the sets of earlier runs that this run did not render
-        manifest_path = out / MANIFEST_NAME
-        if manifest_path.is_file():
-            try:
-                old = json.loads(manifest_path.read_text())
-                same_run = (
-                    old.get("preset", {}).get("sha256") == loaded.digest
-                    and old.get("seed") == seed
-                    and old.get("noise_free") == bool(noise_free)
-                )
-                if same_run:
-                    for name, value in old.get("sets", {}).items():
-                        manifest["sets"].setdefault(name, value)
-            except (ValueError, AttributeError):
-                pass
-        manifest["sets"] = {k: manifest["sets"][k] for k in sorted(manifest["sets"])}
+            "sets": {k: manifest_sets[k] for k in sorted(manifest_sets)},
+            "preset_data": recorded,
+        }  # fmt: skip
         tmp = manifest_path.with_suffix(".json.tmp")
         tmp.write_text(json.dumps(manifest, indent=1) + "\n")
         tmp.replace(manifest_path)

@@ -30,12 +30,66 @@ from endomeasure.errors import BadInputError
 from endomeasure.models.base import ModelConfig
 from endomeasure.models.raytrace import RaytraceModel, plane_normal
 
-__all__ = ["Preset", "load_preset", "builtin_presets", "PRESET_FORMAT"]
+__all__ = [
+    "Preset",
+    "load_preset",
+    "builtin_presets",
+    "data_digest",
+    "restrict_to_sets",
+    "PRESET_FORMAT",
+]
 
 PRESET_FORMAT = "endomeasure-simulator-preset"
 PRESET_VERSION = 1
 
 _REQUIRED = ("sensor", "lens", "prism", "illumination", "render", "targets", "sets")
+
+
+def data_digest(data: dict[str, Any]) -> str:
+    """SHA-256 of the canonical JSON (sorted keys, no spaces) of preset data."""
+    text = json.dumps(data, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _targets_named(value: Any) -> set[str]:
+    """Every ``"target"`` value anywhere inside a set's protocol."""
+    found: set[str] = set()
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if key == "target" and isinstance(item, str):
+                found.add(item)
+            else:
+                found |= _targets_named(item)
+    elif isinstance(value, list):
+        for item in value:
+            found |= _targets_named(item)
+    return found
+
+
+def restrict_to_sets(data: dict[str, Any], set_names) -> dict[str, Any]:
+    """Preset data reduced to some image sets and their targets (see :meth:`Preset.for_sets`).
+
+    Raises
+    ------
+    ValueError
+        A set the data does not define.
+    """
+    names = set(set_names)
+    sets = data.get("sets", {})
+    missing = sorted(names - set(sets))
+    if missing:
+        raise ValueError(f"the preset defines no {', '.join(map(repr, missing))} set")
+    used: set[str] = set()
+    for name in names:
+        used |= _targets_named(sets[name])
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        if key == "targets":
+            value = {k: v for k, v in value.items() if k in used}
+        elif key == "sets":
+            value = {k: v for k, v in value.items() if k in names}
+        out[key] = copy.deepcopy(value)
+    return out
 
 
 def builtin_presets() -> list[str]:
@@ -135,8 +189,22 @@ class Preset:
     @cached_property
     def digest(self) -> str:
         """SHA-256 of the canonical JSON of the preset: identifies its optics and protocol."""
-        text = json.dumps(self.data, sort_keys=True, separators=(",", ":"))
-        return hashlib.sha256(text.encode()).hexdigest()
+        return data_digest(self.data)
+
+    def for_sets(self, set_names) -> dict[str, Any]:
+        """The preset's data as far as the given image sets depend on it.
+
+        Everything but ``targets`` and ``sets``, plus the named sets and the targets they
+        use, in the order of the preset (so the result does not depend on the order of
+        ``set_names``). A simulated folder records this, so adding a set or a target to a
+        preset does not change what the folders of its other sets say they were made of.
+
+        Raises
+        ------
+        ValueError
+            A set the preset does not define.
+        """
+        return restrict_to_sets(self.data, set_names)
 
     # ----- sections -----------------------------------------------------------------------
     @property

@@ -8,6 +8,9 @@
   board from 22 to 40 mm in 1 mm steps (the paper's protocol), with the small residual
   tilt and offset of a real stage.
 - ``scene``: a textured metal cylinder with small marks at known positions.
+- ``charuco``: a ChArUco board larger than the view at 10-20 mm, tilted and rolled, so
+  each half sees only part of it (the detector must name corners by the board's ids).
+  Not part of the default run (``make samples``); asked for with ``--set charuco``.
 
 Poses are drawn from a generator seeded by the run seed and the set name, so a set is
 reproducible on its own. Rotations compose as ``R = Rz(roll) Ry(tilt_y) Rx(tilt_x)``
@@ -26,11 +29,16 @@ from endomeasure.conventions import Half, Status
 from endomeasure.geometry.rotations import rotation_matrix
 from endomeasure.simulate.optics import apex_columns
 from endomeasure.simulate.preset import Preset
-from endomeasure.simulate.targets import Chessboard, MetalCylinder, target_from_preset
+from endomeasure.simulate.targets import (
+    CharucoBoard,
+    Chessboard,
+    MetalCylinder,
+    target_from_preset,
+)
 
 __all__ = ["Shot", "SET_NAMES", "plan_set", "visibility", "set_rng"]
 
-SET_NAMES = ("calib", "test", "scene")
+SET_NAMES = ("calib", "test", "scene", "charuco")
 
 BORDER_CLEARANCE_PX = 2.0
 """A board counts as fully visible when its checker outline stays this far inside the
@@ -47,7 +55,7 @@ class Shot:
 
     set_name: str
     index: int
-    target: Chessboard | MetalCylinder
+    target: Chessboard | CharucoBoard | MetalCylinder
     tags: tuple[str, ...] = ()
 
     @property
@@ -70,7 +78,7 @@ def _rotation(tilt_x: float, tilt_y: float, roll: float) -> np.ndarray:
     )
 
 
-def _place_board(board: Chessboard, R: np.ndarray, centre: np.ndarray) -> Chessboard:
+def _place_board(board, R: np.ndarray, centre: np.ndarray):
     return board.with_pose(R, centre - R @ board.centre_board)
 
 
@@ -105,7 +113,7 @@ class _Clearance:
 
 
 def visibility(
-    preset: Preset, board: Chessboard, clearance: _Clearance | None = None
+    preset: Preset, board: Chessboard | CharucoBoard, clearance: _Clearance | None = None
 ) -> dict[str, bool]:
     """Whether the whole checker area of a posed board is visible in each half.
 
@@ -226,7 +234,50 @@ def _scene(preset: Preset, seed: int) -> list[Shot]:
     return shots
 
 
-_PLANNERS = {"calib": _calib, "test": _test, "scene": _scene}
+def _charuco(preset: Preset, seed: int) -> list[Shot]:
+    """A ChArUco board larger than the view: cut by the field in both halves.
+
+    Each image puts the board's centre within ``max_offset_mm`` of the optical axis at a
+    stratified distance, tilted uniformly up to ``max_tilt_deg`` about x and y and rolled
+    up to ``max_roll_deg`` (ChArUco ids do not depend on the roll), and keeps the pose
+    when in both halves the board is not whole and at least ``min_corners_per_half``
+    inner corners are clear of the border and of the apex band.
+    """
+    spec = preset.sets["charuco"]
+    rng = set_rng(seed, "charuco")
+    clearance = _Clearance(preset)
+    base = target_from_preset(spec["target"], preset.targets[spec["target"]])
+    if not isinstance(base, CharucoBoard):
+        raise ValueError(f"the charuco set's target {spec['target']!r} is not a charuco board")
+    n = int(spec["images"])
+    lo, hi = (float(v) for v in spec["distance_mm"])
+    max_tilt = np.radians(float(spec["max_tilt_deg"]))
+    max_roll = np.radians(float(spec["max_roll_deg"]))
+    max_offset = float(spec["max_offset_mm"])
+    min_corners = int(spec["min_corners_per_half"])
+    z_all = lo + (np.arange(n) + rng.uniform(0.15, 0.85, n)) / n * (hi - lo)
+    shots = []
+    for k in range(n):
+        for _ in range(_MAX_TRIES):
+            tx, ty = rng.uniform(-1, 1, 2) * max_tilt
+            roll = rng.uniform(-1, 1) * max_roll
+            centre = np.array([*(rng.uniform(-1, 1, 2) * max_offset), z_all[k]])
+            board = _place_board(base, _rotation(tx, ty, roll), centre)
+            whole = visibility(preset, board, clearance)
+            corners = board.corners_camera
+            seen = [int(clearance.inside(corners, h)[1].sum()) for h in Half]
+            if not any(whole.values()) and min(seen) >= min_corners:
+                break
+        else:
+            raise ValueError(
+                f"charuco image {k}: no pose at {z_all[k]:.1f} mm cuts the board in both halves "
+                f"and shows {min_corners} corners in each; the board is too small or too large"
+            )
+        shots.append(Shot("charuco", k, board))
+    return shots
+
+
+_PLANNERS = {"calib": _calib, "test": _test, "scene": _scene, "charuco": _charuco}
 
 
 def plan_set(preset: Preset, set_name: str, seed: int) -> list[Shot]:

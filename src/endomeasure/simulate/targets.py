@@ -1,4 +1,4 @@
-"""Scene objects the simulator renders: a chessboard target and a textured metal cylinder.
+"""Scene objects the simulator renders: chessboard and ChArUco targets, a metal cylinder.
 
 Every object has a pose ``T_camera_object`` (rotation ``R`` and translation ``t``, mm)
 and answers :meth:`hit`: where rays meet it, its surface normal, diffuse albedo and
@@ -11,6 +11,12 @@ The checker area spans ``-s <= x < cols * s``, ``-s <= y < rows * s`` (one outer
 beyond the inner corners on each side); the square whose corner nearest the origin is
 ``(i s, j s)`` is black when ``i + j`` is even, so the top-left outer square is black.
 Around the checker area a white margin of ``margin_squares`` squares, then the card ends.
+
+A ChArUco board is the same card with OpenCV's pattern printed on it: ``squares_x x
+squares_y`` squares (so ``squares_x - 1`` by ``squares_y - 1`` inner corners, numbered as
+OpenCV numbers ChArUco corners, which is the rule above), an ArUco marker in every white
+square. The pattern is the image ``cv2.aruco.CharucoBoard.generateImage`` draws (current,
+non-legacy layout), mapped onto the checker area.
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["Hit", "Chessboard", "MetalCylinder", "target_from_preset"]
+__all__ = ["Hit", "Chessboard", "CharucoBoard", "MetalCylinder", "target_from_preset"]
 
 
 class Hit(NamedTuple):
@@ -40,41 +46,21 @@ def _pose(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, t
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class Chessboard:
-    """A flat printed chessboard on a white card.
+class _FlatBoard:
+    """Geometry shared by the flat printed boards: pose, corners, outline, ray hits.
 
-    Attributes
-    ----------
-    cols, rows : int
-        Inner corners per row / per column.
-    square_mm : float, mm
-    margin_squares : float
-        White margin around the checker area, in squares.
-    black, white : float
-        Diffuse reflectances of the dark and light squares.
-    R, t : ndarray (3, 3), (3,)
-        Pose ``T_camera_board``: a board point ``p`` is at ``R p + t`` in the camera frame.
+    Subclasses provide ``cols``, ``rows`` (inner corners), ``square_mm``,
+    ``margin_squares``, the pose ``R``, ``t`` and :meth:`_albedo`.
     """
 
     cols: int
     rows: int
     square_mm: float
     margin_squares: float
-    black: float
-    white: float
     R: np.ndarray
     t: np.ndarray
-    name: str = "board"
 
-    kind = "chessboard"
-
-    @property
-    def spec(self) -> str:
-        """Detector spec string, e.g. ``chessboard:8x6:1``."""
-        return f"chessboard:{self.cols}x{self.rows}:{self.square_mm:g}"
-
-    def with_pose(self, R: np.ndarray, t: np.ndarray) -> Chessboard:
+    def with_pose(self, R: np.ndarray, t: np.ndarray):
         R, t = _pose(R, t)
         return dataclasses.replace(self, R=R, t=t)
 
@@ -114,6 +100,10 @@ class Chessboard:
         xy = np.concatenate(sides)
         return np.concatenate([xy, np.zeros((xy.shape[0], 1))], axis=-1)
 
+    def _albedo(self, bx: np.ndarray, by: np.ndarray, dtype) -> np.ndarray:
+        """Reflectance at board coordinates in squares (``x / square_mm``, ``y / square_mm``)."""
+        raise NotImplementedError
+
     def hit(self, o: tuple[np.ndarray, ...], d: tuple[np.ndarray, ...]) -> Hit:
         """Intersect rays with the card.
 
@@ -134,16 +124,54 @@ class Chessboard:
         by = (px * R[0, 1] + py * R[1, 1] + pz * R[2, 1]) * inv_s
         m = self.margin_squares
         hit = (bx >= -1 - m) & (bx < self.cols + m) & (by >= -1 - m) & (by < self.rows + m)
-        i = np.floor(bx)
-        j = np.floor(by)
-        checker = (i >= -1) & (i <= self.cols - 1) & (j >= -1) & (j <= self.rows - 1)
-        dark = checker & (np.mod(i + j, 2.0) == 0)
-        albedo = np.where(dark, self.black, self.white).astype(t.dtype)
+        albedo = self._albedo(bx, by, t.dtype)
         albedo[~hit] = 0.0
         t[~hit] = np.nan
         flip = -1.0 if R[:, 2] @ np.array([0.0, 0.0, 1.0]) > 0 else 1.0  # face the camera
         normal = (flip * nx, flip * ny, flip * nz)
         return Hit(t, hit, normal, albedo, 0.0)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Chessboard(_FlatBoard):
+    """A flat printed chessboard on a white card.
+
+    Attributes
+    ----------
+    cols, rows : int
+        Inner corners per row / per column.
+    square_mm : float, mm
+    margin_squares : float
+        White margin around the checker area, in squares.
+    black, white : float
+        Diffuse reflectances of the dark and light squares.
+    R, t : ndarray (3, 3), (3,)
+        Pose ``T_camera_board``: a board point ``p`` is at ``R p + t`` in the camera frame.
+    """
+
+    cols: int
+    rows: int
+    square_mm: float
+    margin_squares: float
+    black: float
+    white: float
+    R: np.ndarray
+    t: np.ndarray
+    name: str = "board"
+
+    kind = "chessboard"
+
+    @property
+    def spec(self) -> str:
+        """Detector spec string, e.g. ``chessboard:8x6:1``."""
+        return f"chessboard:{self.cols}x{self.rows}:{self.square_mm:g}"
+
+    def _albedo(self, bx: np.ndarray, by: np.ndarray, dtype) -> np.ndarray:
+        i = np.floor(bx)
+        j = np.floor(by)
+        checker = (i >= -1) & (i <= self.cols - 1) & (j >= -1) & (j <= self.rows - 1)
+        dark = checker & (np.mod(i + j, 2.0) == 0)
+        return np.where(dark, self.black, self.white).astype(dtype)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -153,6 +181,118 @@ class Chessboard:
             "cols": self.cols,
             "rows": self.rows,
             "square_mm": self.square_mm,
+            "margin_squares": self.margin_squares,
+            "reflectance_black": self.black,
+            "reflectance_white": self.white,
+        }
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CharucoBoard(_FlatBoard):
+    """A flat printed OpenCV ChArUco board on a white card.
+
+    Attributes
+    ----------
+    squares_x, squares_y : int
+        Squares along the board's x and y (``squares_x - 1`` x ``squares_y - 1`` inner
+        corners).
+    square_mm, marker_mm : float, mm
+        Side of a square and of an ArUco marker (with its one-bit black border).
+    dictionary : str
+        Predefined ArUco dictionary, e.g. ``DICT_4X4_1000``.
+    texels_per_square : int
+        Resolution of the pattern image drawn by OpenCV. The texture is exact (not an
+        approximation of a finer pattern) when every marker bit and the white gap around
+        the marker are whole texels; :meth:`from_spec` checks that.
+    margin_squares, black, white, R, t, name : as :class:`Chessboard`.
+
+    Notes
+    -----
+    The pattern is the image ``generateImage`` draws, ``squares_x * texels_per_square``
+    wide, placed so that its top-left corner is the board's outer corner ``(-s, -s)``.
+    Each ray sample reads the texel it falls in (the pattern is piecewise constant, so
+    that is its exact value at the sample's point); the renderer's supersampling is the
+    anti-aliasing, as for the chessboard. Texel edges are at multiples of
+    ``s / texels_per_square``, so the square edges, hence the inner corners, are exactly
+    where the board frame puts them.
+    """
+
+    squares_x: int
+    squares_y: int
+    square_mm: float
+    marker_mm: float
+    dictionary: str
+    texels_per_square: int
+    margin_squares: float
+    black: float
+    white: float
+    R: np.ndarray
+    t: np.ndarray
+    name: str = "charuco"
+
+    kind = "charuco"
+
+    @property
+    def cols(self) -> int:
+        """Inner corners per row."""
+        return self.squares_x - 1
+
+    @property
+    def rows(self) -> int:
+        """Inner corners per column."""
+        return self.squares_y - 1
+
+    @property
+    def spec(self) -> str:
+        """Detector spec string, e.g. ``charuco:26x22:1.5:1.125:DICT_4X4_1000``."""
+        return self.board_spec.canonical()
+
+    @cached_property
+    def board_spec(self):
+        """The :class:`~endomeasure.features.boards.CharucoSpec` of this board."""
+        from endomeasure.features.boards import parse_board_spec
+
+        return parse_board_spec(
+            f"charuco:{self.squares_x}x{self.squares_y}:{self.square_mm!r}:"
+            f"{self.marker_mm!r}:{self.dictionary}"
+        )
+
+    @cached_property
+    def pattern(self) -> np.ndarray:
+        """The board as OpenCV draws it: True where black, shape (squares_y T, squares_x T)."""
+        from endomeasure.features.charuco import opencv_charuco_board
+
+        T = self.texels_per_square
+        drawn = opencv_charuco_board(self.board_spec).generateImage(
+            (self.squares_x * T, self.squares_y * T), marginSize=0, borderBits=1
+        )
+        return drawn <= 127
+
+    def _albedo(self, bx: np.ndarray, by: np.ndarray, dtype) -> np.ndarray:
+        T = self.texels_per_square
+        height, width = self.pattern.shape
+        with np.errstate(invalid="ignore"):
+            tx = np.floor((bx + 1.0) * T)
+            ty = np.floor((by + 1.0) * T)
+            inside = (tx >= 0) & (tx < width) & (ty >= 0) & (ty < height)
+        flat = np.where(inside, ty * width + tx, 0).astype(np.int64)
+        dark = inside & self.pattern.ravel().take(flat)
+        return np.where(dark, self.black, self.white).astype(dtype)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "name": self.name,
+            "spec": self.spec,
+            "squares_x": self.squares_x,
+            "squares_y": self.squares_y,
+            "cols": self.cols,
+            "rows": self.rows,
+            "square_mm": self.square_mm,
+            "marker_mm": self.marker_mm,
+            "dictionary": self.dictionary,
+            "layout": "OpenCV CharucoBoard, setLegacyPattern(False); top-left square black",
+            "texels_per_square": self.texels_per_square,
             "margin_squares": self.margin_squares,
             "reflectance_black": self.black,
             "reflectance_white": self.white,
@@ -318,6 +458,38 @@ class MetalCylinder:
         }
 
 
+def _marker_bits(dictionary: str) -> int:
+    """Bits per side of a predefined ArUco dictionary's markers (without the border)."""
+    return 5 if dictionary == "DICT_ARUCO_ORIGINAL" else int(dictionary[5])
+
+
+def _check_texels(board: CharucoBoard) -> None:
+    """Refuse a texel size at which OpenCV would round the markers' cells or gap.
+
+    Raises
+    ------
+    ValueError
+        The marker (``marker_mm / square_mm * T`` texels), its gap to the square's edge
+        and its cells (the bits plus a one-bit border on each side) are not whole texels.
+    """
+    from endomeasure.errors import BadInputError
+
+    try:
+        board.board_spec  # noqa: B018 - validates squares, marker, dictionary
+    except BadInputError as exc:
+        raise ValueError(f"target {board.name!r}: {exc.what}") from None
+    T = board.texels_per_square
+    marker = board.marker_mm / board.square_mm * T
+    cells = _marker_bits(board.dictionary) + 2
+    whole = round(marker)
+    if T < 1 or abs(marker - whole) > 1e-9 or (T - whole) % 2 or whole % cells:
+        raise ValueError(
+            f"target {board.name!r}: at {T} texels per square the marker is {marker:g} texels; "
+            f"choose texels_per_square so that it is a whole multiple of {cells} (the marker's "
+            "cells) with an even number of texels left over (the gap on both sides)"
+        )
+
+
 def target_from_preset(name: str, spec: dict[str, Any]):
     """Build an (unposed) target from its preset entry."""
     kind = spec.get("kind")
@@ -328,6 +500,18 @@ def target_from_preset(name: str, spec: dict[str, Any]):
             float(spec.get("margin_squares", 1.0)), float(spec.get("black", 0.06)),
             float(spec.get("white", 0.85)), eye, zero, name,
         )  # fmt: skip
+    if kind == "charuco":
+        board = CharucoBoard(
+            squares_x=int(spec["squares_x"]), squares_y=int(spec["squares_y"]),
+            square_mm=float(spec["square_mm"]), marker_mm=float(spec["marker_mm"]),
+            dictionary=str(spec["dictionary"]),
+            texels_per_square=int(spec["texels_per_square"]),
+            margin_squares=float(spec.get("margin_squares", 1.0)),
+            black=float(spec.get("black", 0.06)), white=float(spec.get("white", 0.85)),
+            R=eye, t=zero, name=name,
+        )  # fmt: skip
+        _check_texels(board)
+        return board
     if kind == "cylinder":
         return MetalCylinder(
             float(spec["radius_mm"]), float(spec["albedo"]), float(spec["texture_contrast"]),

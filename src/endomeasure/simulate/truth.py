@@ -19,9 +19,16 @@ from endomeasure.conventions import Half, Status
 from endomeasure.geometry.rotations import rotation_vector
 from endomeasure.simulate.preset import Preset
 from endomeasure.simulate.scenes import Shot, visibility
-from endomeasure.simulate.targets import Chessboard, MetalCylinder
+from endomeasure.simulate.targets import CharucoBoard, Chessboard, MetalCylinder
 
-__all__ = ["TRUTH_FORMAT", "TRUTH_VERSION", "CORNER_ID_RULE", "image_truth", "true_pixels"]
+__all__ = [
+    "TRUTH_FORMAT",
+    "TRUTH_VERSION",
+    "CORNER_ID_RULE",
+    "CHARUCO_CORNER_ID_RULE",
+    "image_truth",
+    "true_pixels",
+]
 
 TRUTH_FORMAT = "endomeasure-simulated-truth"
 TRUTH_VERSION = 1
@@ -29,6 +36,13 @@ CORNER_ID_RULE = (
     "id = row * cols + col; corner (col, row) at (col * square_mm, row * square_mm, 0) in the "
     "board frame; id 0 is the inner corner nearest the image's top-left, cols increase along "
     "+u (board +x), rows along +v (board +y), the same in both halves"
+)
+
+CHARUCO_CORNER_ID_RULE = (
+    "OpenCV's ChArUco corner ids: id = row * (squares_x - 1) + col for inner corner (col, row), "
+    "at (col * square_mm, row * square_mm, 0) in the board frame (OpenCV's ChArUco object "
+    "points minus one square in x and y); the board's own ids, whatever part of the board a "
+    "half shows and however it is turned"
 )
 
 
@@ -64,13 +78,14 @@ def _pose(R: np.ndarray, t: np.ndarray) -> dict[str, Any]:
     }
 
 
-def _board_truth(preset: Preset, board: Chessboard) -> dict[str, Any]:
+def _board_truth(preset: Preset, board: Chessboard | CharucoBoard) -> dict[str, Any]:
     s = board.square_mm
     corners = board.corners_camera
     normal = board.R[:, 2]
     tilt = float(np.degrees(np.arccos(min(1.0, abs(normal[2])))))
+    rule = CHARUCO_CORNER_ID_RULE if isinstance(board, CharucoBoard) else CORNER_ID_RULE
     return {
-        "target": {**board.to_dict(), "corner_ids": CORNER_ID_RULE},
+        "target": {**board.to_dict(), "corner_ids": rule},
         "T_camera_board": _pose(board.R, board.t),
         "distance_mm": float((board.R @ board.centre_board + board.t)[2]),
         "tilt_deg": tilt,
@@ -128,7 +143,7 @@ def image_truth(
         "image_size": list(preset.image_size),
         "split": preset.split,
     }
-    if isinstance(shot.target, Chessboard):
+    if isinstance(shot.target, (Chessboard, CharucoBoard)):
         doc["board_spec"] = shot.target.spec
         doc.update(_board_truth(preset, shot.target))
     else:
