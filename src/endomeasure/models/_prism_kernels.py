@@ -29,6 +29,7 @@ _OK = int(Status.OK)
 _TIR = int(Status.TOTAL_INTERNAL_REFLECTION)
 _BEHIND = int(Status.BEHIND)
 _NOT_CONVERGED = int(Status.NOT_CONVERGED)
+_OUTSIDE = int(Status.OUTSIDE_HALF)
 _MAX_HALVINGS = 12
 # Central-difference step in normalised lens coordinates for d(offset)/d(x, y): truncation
 # error ~h^2 (1e-14), rounding ~1e-16/h (1e-9 relative).
@@ -186,7 +187,7 @@ def _lens_jacobian(x, y, faces, n_glass, px, py, pz, h, out):
 @njit(cache=True, nogil=True, error_model="numpy")
 def aim_rays(
     points, faces, n_glass, centre, exponents, coeffs, lut, lut_origin, lut_step,
-    start_xy, tol_x, tol_y, max_iter, xy, status, dxy_dp,
+    start_xy, tol_x, tol_y, max_iter, xy, status, dxy_dp, lens, r2_max, pixels,
 ):  # fmt: skip
     """Ray aiming for many points by Broyden's method (see ``raytrace.aim_rays``).
 
@@ -211,6 +212,11 @@ def aim_rays(
     dxy_dp : float64[N, 2, 3] or float64[0, 2, 3] (output)
         Where given, the derivative of the lens coordinates with respect to the point,
         by the implicit-function rule (see ``_lens_jacobian``).
+    lens : float64[9], r2_max : float, pixels : float64[N, 2] or float64[0, 2] (output)
+        Where ``pixels`` is given, the pixel of each solution through the lens
+        ``fx fy cx cy k1 k2 p1 p2 k3`` (Brown distortion, as
+        :func:`endomeasure.geometry.distortion.distort`); a solution beyond the fold-back
+        radius ``r2_max`` of the distortion is ``OUTSIDE_HALF``.
     """
     n_feat = exponents.shape[0]
     top = 0
@@ -222,6 +228,7 @@ def aim_rays(
     pw_q = np.empty(top + 1)
     use_lut = lut.shape[0] >= 2
     want_jac = dxy_dp.shape[0] > 0
+    want_pixels = pixels.shape[0] > 0
     warm = start_xy.shape[0] > 0
     for i in range(points.shape[0]):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
@@ -293,6 +300,19 @@ def aim_rays(
                 y += sy
                 result = _OK if s > 0.0 else _BEHIND
                 break
+        if result == _OK and want_pixels:
+            r2 = x * x + y * y
+            if r2 > r2_max:
+                result = _OUTSIDE
+            else:
+                radial = 1.0 + r2 * (lens[4] + r2 * (lens[5] + r2 * lens[8]))
+                xd = x * radial + 2.0 * lens[6] * x * y + lens[7] * (r2 + 2.0 * x * x)
+                yd = y * radial + lens[6] * (r2 + 2.0 * y * y) + 2.0 * lens[7] * x * y
+                pixels[i, 0] = lens[0] * xd + lens[2]
+                pixels[i, 1] = lens[1] * yd + lens[3]
+        if want_pixels and result != _OK:
+            pixels[i, 0] = _NAN
+            pixels[i, 1] = _NAN
         status[i] = result
         if result == _OK:
             xy[i, 0] = x

@@ -171,8 +171,8 @@ class RaytraceModel(CameraModel):
 
     # ----- forward projection by ray aiming ---------------------------------------------
     def _project(self, points, half):
-        x, y, status = aim_rays(self, points, half)
-        return self._lens_to_pixels(x, y), self._lens_status(x, y, status)
+        _, _, status, pixels = aim_rays(self, points, half, pixels=True)
+        return pixels, status
 
     def _project_jacobian(self, points, half):
         x, y, status, dxy_dp = aim_rays(self, points, half, jacobian=True)
@@ -327,6 +327,7 @@ def aim_rays(
     aim: _AimMap | None = None,
     jacobian: bool = False,
     start: np.ndarray | None = None,
+    pixels: bool = False,
 ) -> tuple[np.ndarray, ...]:
     """Lens coordinates whose traced ray passes through each point (ray aiming).
 
@@ -344,6 +345,9 @@ def aim_rays(
     start : ndarray, shape (N, 2), optional
         Warm-start lens coordinates (rows of NaN start from the table), e.g. the
         previous solution while an optimiser moves the parameters a little.
+    pixels : bool
+        Also return the pixels of the solutions (computed in the same pass), shape
+        (N, 2); solutions beyond the distortion's fold-back radius are ``OUTSIDE_HALF``.
 
     Returns
     -------
@@ -373,11 +377,17 @@ def aim_rays(
     status = np.empty(points.shape[0], dtype=STATUS_DTYPE)
     dxy_dp = np.empty((points.shape[0] if jacobian else 0, 2, 3))
     start = np.empty((0, 2)) if start is None else np.ascontiguousarray(start, dtype=np.float64)
+    q = np.empty((points.shape[0] if pixels else 0, 2))
+    lens = np.array([model.fx, model.fy, model.cx, model.cy, *model._lens_coeffs()[:4], model.k3])
+    r2_max = max_monotonic_radius2(model.k1, model.k2, model.k3)
     _prism_kernels.aim_rays(
         points, model.faces_array(half), model.n_glass, aim.centre, aim.exponents, aim.coeffs,
         aim.lut, aim.lut_origin, aim.lut_step, start,
-        AIM_TOL_PX / model.fx, AIM_TOL_PX / model.fy, AIM_MAX_ITER, xy, status, dxy_dp,
+        AIM_TOL_PX / model.fx, AIM_TOL_PX / model.fy, AIM_MAX_ITER, xy, status, dxy_dp, lens, r2_max, q,
     )  # fmt: skip
+    out = (xy[:, 0], xy[:, 1], status)
     if jacobian:
-        return xy[:, 0], xy[:, 1], status, dxy_dp
-    return xy[:, 0], xy[:, 1], status
+        out += (dxy_dp,)
+    if pixels:
+        out += (q,)
+    return out
