@@ -383,7 +383,8 @@ def aim_rays(
     _prism_kernels.aim_rays(
         points, model.faces_array(half), model.n_glass, aim.centre, aim.exponents, aim.coeffs,
         aim.lut, aim.lut_origin, aim.lut_step, start,
-        AIM_TOL_PX / model.fx, AIM_TOL_PX / model.fy, AIM_MAX_ITER, xy, status, dxy_dp, lens, r2_max, q,
+        AIM_TOL_PX / model.fx, AIM_TOL_PX / model.fy, AIM_MAX_ITER,
+        xy, status, dxy_dp, lens, r2_max, q,
     )  # fmt: skip
     out = (xy[:, 0], xy[:, 1], status)
     if jacobian:
