@@ -113,6 +113,78 @@ def test_ut_of_a_rank_one_quadratic_is_exact_in_the_small_alpha_limit(rng):
     assert lin.bias[0] == 0.0
 
 
+def quadratic(rng, L, rank):
+    """f(x) = g.x + x^T A x / 2 with a symmetric A of the given rank and mixed signs."""
+    V = np.linalg.qr(rng.normal(size=(L, L)))[0][:, :rank]
+    A = V @ np.diag(rng.uniform(0.5, 2.0, rank) * rng.choice([-1.0, 1.0], rank)) @ V.T
+    g = rng.normal(size=L)
+
+    def f(X):
+        return X @ g + 0.5 * np.einsum("...i,ij,...j->...", X, A, X)
+
+    return f, g, A
+
+
+def gaussian_moments(g, A, x0, cov):
+    """Mean and variance of the quadratic for x ~ N(x0, cov) (closed form)."""
+    grad = g + A @ x0
+    AP = A @ cov
+    mean = g @ x0 + 0.5 * x0 @ A @ x0 + 0.5 * np.trace(AP)
+    return mean, grad @ cov @ grad + 0.5 * np.trace(AP @ AP)
+
+
+@pytest.mark.parametrize("alpha", [0.1, 1.0])
+def test_cross_points_make_the_ut_exact_for_any_quadratic(rng, alpha):
+    L = 6
+    cov = random_cov(rng, L)
+    x0 = rng.normal(size=L)
+    f, g, A = quadratic(rng, L, rank=4)
+    mean, var = gaussian_moments(g, A, x0, cov)
+    ut = unscented(f, x0, cov, alpha=alpha, cross=True)
+    assert ut.mean[0] == pytest.approx(mean, rel=1e-9)
+    assert ut.std[0] ** 2 == pytest.approx(var, rel=1e-9)
+
+    # the plain 2L+1 points see the curvature only through tr(AP)^2 (DEFAULT_BETA): for
+    # f = |x|^2 / 2 with P = I (rank L, equal curvatures) they return L^2 / 2, not L / 2
+    def sq(X):
+        return 0.5 * np.sum(X * X, axis=-1)
+
+    plain = unscented(sq, np.zeros(L), np.eye(L), alpha=1e-3, cross=None)
+    assert plain.mean[0] == pytest.approx(L / 2, rel=1e-9)
+    assert plain.std[0] ** 2 == pytest.approx(L**2 / 2, rel=1e-5)
+    exact = unscented(sq, np.zeros(L), np.eye(L), alpha=alpha, cross=True)
+    assert exact.std[0] ** 2 == pytest.approx(L / 2, rel=1e-9)
+
+
+def test_cross_points_on_one_block(rng):
+    # curvature only in the image block; the calibration block is linear: cross points
+    # on the image block alone are exact, and the parts add up to the total
+    cov, blocks = input_covariance(2, 0.7, rho_images=0.3, param_cov=random_cov(rng, 3))
+    L = cov.shape[0]
+    x0 = rng.normal(size=L)
+    f_img, g_img, A_img = quadratic(rng, 8, rank=5)
+    w = rng.normal(size=3)
+
+    def f(X):
+        return f_img(X[..., :8]) + X[..., 8:] @ w
+
+    A = np.zeros((L, L))
+    A[:8, :8] = A_img
+    mean, var = gaussian_moments(np.concatenate([g_img, w]), A, x0, cov)
+    ut = unscented(f, x0, cov, blocks=blocks, cross=("image",))
+    assert ut.mean[0] == pytest.approx(mean, rel=1e-9)
+    assert ut.std[0] ** 2 == pytest.approx(var, rel=1e-9)
+    img, cal = ut.parts["image"][1][0], ut.parts["calibration"][1][0]
+    assert img**2 + cal**2 == pytest.approx(var, rel=1e-9)
+    assert cal**2 == pytest.approx(w @ cov[8:, 8:] @ w, rel=1e-9)
+
+
+def test_the_measurement_black_box_asks_for_cross_points_from_three_points(raytrace_model):
+    assert MeasurementFunction(raytrace_model, length, 2).cross_columns is None
+    f = MeasurementFunction(raytrace_model, length, 3, with_params=True)
+    assert f.cross_columns == slice(0, 12)
+
+
 def test_monte_carlo_matches_the_gaussian_moments(rng):
     L = 4
     cov = random_cov(rng, L)

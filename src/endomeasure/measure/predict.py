@@ -46,18 +46,15 @@ __all__ = [
 ]
 
 
-UT_BETA: dict[str, float] = {"area": 1.0}
+UT_BETA: dict[str, float] = {}
 """The UT's ``beta`` per kind where it differs from
-:data:`~endomeasure.solvers.uncertainty.DEFAULT_BETA` (2). With a small alpha the UT
-replaces the second-order variance term ``1/2 tr((HP)^2)`` of a quadratic ``f`` by
-``beta b^2`` with the bias ``b = 1/2 tr(HP)``: exact for ``beta = 2`` when ``HP`` has one
-non-zero eigenvalue and for ``beta = 2/r`` when it has r equal ones. A length, a
-point-line distance or a polyline curves along one dominant noise direction (the depth
-error across the segment), rank one. The magnitude of a polygon's vector area curves
-along two (its tilt about two in-plane axes, both driven by the depth noise), rank two:
-``beta = 1`` there. Measured against Monte Carlo on 5-point polygons at sigma = 0.05 px
-(conftest raytrace design): beta = 2 over-predicts the standard deviation by 5-13%,
-beta = 1 is within 3%."""
+:data:`~endomeasure.solvers.uncertainty.DEFAULT_BETA` (2): none. Areas used 1 (a polygon
+facing the probe curves along its two tilts, and ``beta = 2/r`` is right for r equal
+curvatures), but no single beta is right for every polygon or polyline; the pixels of
+measurements of three or more points now get the UT's cross points
+(:attr:`~endomeasure.solvers.uncertainty.MeasurementFunction.cross_columns`), which make
+the variance second-order exact for any curvature, and beta only acts on the
+calibration parameters. Kept (empty) for callers that pass ``beta`` per kind."""
 
 
 def measurement_function(
@@ -105,7 +102,9 @@ def predict_measurement_error(
     method : {'ut', 'linear', 'mc'}
     **options
         Passed to the propagator (``alpha``, ``beta``, ``kappa``; ``n_samples``,
-        ``seed``, ``parts``; ``step``). ``beta`` defaults per kind (:data:`UT_BETA`).
+        ``seed``, ``parts``; ``step``; ``cross``). ``beta`` defaults per kind
+        (:data:`UT_BETA`); the UT adds cross points on the pixels of measurements of
+        three or more points.
 
     Returns
     -------
