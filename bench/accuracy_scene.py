@@ -626,7 +626,7 @@ The same {h["n"]} distances under other inputs (within: |error| <= 2 sigma; with
   (the mean z with the truth optics) and is not part of any predicted sigma.
 - **The calibration's own error dominates.** On the true right pixels the calibrated
   raytrace model measures the distances {band_figures(true_px)["mean_rel_pct"]:+.3f} %
-  short on average (growing with depth), many times its predicted calibration sigma.
+  short on average, many times its predicted calibration sigma.
   Calibrating on the simulator's *true* corner pixels of the same views instead of the
   detected ones (same solver) gives {exact_calibration.mean():+.3f} % (range
   {exact_calibration.min():+.3f} to {exact_calibration.max():+.3f} %): the cause is a \
