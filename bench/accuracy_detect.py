@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -31,6 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from _common import ROOT, replace_section
+from _samples import SETS, detect_samples, detection_errors
+from _samples import endomeasure as run_command
+from endomeasure.simulate.manifest import MANIFEST_NAME, load_manifest
 
 ID_MATCH_PX = 1.0  # true corners are >= 5 px apart in every image of the preset
 SAMPLES = ROOT / "sample_sessions"
@@ -38,56 +40,35 @@ ACCURACY_DOC = ROOT / "docs" / "accuracy.md"
 
 
 def endomeasure(*args: str) -> str:
-    exe = Path(sys.executable).parent / "endomeasure"
-    return subprocess.run([str(exe), *args], check=False, capture_output=True, text=True).stdout
-
-
-def detect_all(image_root: Path, session: Path) -> None:
-    manifest = json.loads((image_root / "simulation.json").read_text())
-    for set_name in ("calib", "test"):
-        images = manifest["sets"][set_name]["images"]
-        for spec in sorted({i["board_spec"] for i in images}):
-            files = [str(image_root / i["image"]) for i in images if i["board_spec"] == spec]
-            endomeasure("detect", str(session), *files, "--board", spec, "--set", set_name)
+    return run_command(*args, check=False).stdout
 
 
 def compare(image_root: Path, session: Path) -> dict[str, dict]:
-    from endomeasure.io.session import open_session
-
-    manifest = json.loads((image_root / "simulation.json").read_text())
+    halves = detection_errors(image_root, session)
     out = {}
-    with open_session(session) as s:
-        by_key = {(d.image, d.half): d for d in s.detections()}
-        for set_name in ("calib", "test"):
-            errors, wrong_ids, halves_visible, halves_found = [], 0, 0, 0
-            for item in manifest["sets"][set_name]["images"]:
-                truth = json.loads((image_root / item["truth"]).read_text())
-                name = Path(item["image"]).stem
-                for half_index, half in enumerate(("left", "right")):
-                    visible = truth["board_fully_visible"][half]
-                    halves_visible += bool(visible)
-                    det = by_key.get((name, half_index))
-                    if det is None or len(det.ids) == 0:
-                        continue
-                    halves_found += bool(visible)
-                    true_px = np.array(truth["corners"]["pixels"][half], dtype=float)  # null -> nan
-                    ids = np.asarray(det.ids)
-                    diff = det.pixels - true_px[ids]
-                    dist = np.linalg.norm(diff, axis=-1)
-                    # the nearest true corner of every detection must be its own id
-                    all_d = np.linalg.norm(det.pixels[:, None] - true_px[None], axis=-1)
-                    nearest = np.nanargmin(np.where(np.isnan(all_d), np.inf, all_d), axis=1)
-                    wrong_ids += int(np.sum((nearest != ids) | ~(dist < ID_MATCH_PX)))
-                    errors.append(diff[np.isfinite(dist)])
-            e = np.concatenate(errors) if errors else np.empty((0, 2))
-            out[set_name] = dict(
-                corners=len(e),
-                rms=float(np.sqrt(np.mean(np.sum(e**2, axis=1)))),
-                rms_axis=float(np.sqrt(np.mean(e**2))),
-                max=float(np.max(np.linalg.norm(e, axis=1))),
-                wrong_ids=wrong_ids,
-                halves=(halves_found, halves_visible),
-            )
+    for set_name in SETS:
+        errors, wrong_ids, halves_visible, halves_found = [], 0, 0, 0
+        for h in (h for h in halves if h.set_name == set_name):
+            halves_visible += h.visible
+            if not h.found:
+                continue
+            halves_found += h.visible
+            diff = h.errors
+            dist = np.linalg.norm(diff, axis=-1)
+            # the nearest true corner of every detection must be its own id
+            all_d = np.linalg.norm(h.detected[:, None] - h.true_pixels[None], axis=-1)
+            nearest = np.nanargmin(np.where(np.isnan(all_d), np.inf, all_d), axis=1)
+            wrong_ids += int(np.sum((nearest != h.ids) | ~(dist < ID_MATCH_PX)))
+            errors.append(diff[np.isfinite(dist)])
+        e = np.concatenate(errors) if errors else np.empty((0, 2))
+        out[set_name] = dict(
+            corners=len(e),
+            rms=float(np.sqrt(np.mean(np.sum(e**2, axis=1)))),
+            rms_axis=float(np.sqrt(np.mean(e**2))),
+            max=float(np.max(np.linalg.norm(e, axis=1))),
+            wrong_ids=wrong_ids,
+            halves=(halves_found, halves_visible),
+        )
     return out
 
 
@@ -99,14 +80,14 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         clean_root = args.keep or tmp / "noise_free"
-        if not (clean_root / "simulation.json").exists():
-            seed = json.loads((SAMPLES / "simulation.json").read_text())["seed"]
+        if not (clean_root / MANIFEST_NAME).exists():
+            seed = load_manifest(SAMPLES)["seed"]
             endomeasure("simulate", str(clean_root), "--preset", "default",
                         "--set", "calib,test", "--seed", str(seed), "--noise-free")  # fmt: skip
         results = {}
         for label, root in (("default noise", SAMPLES), ("noise-free", clean_root)):
             session = tmp / f"{label.replace(' ', '_')}.h5"
-            detect_all(root, session)
+            detect_samples(root, session)
             results[label] = compare(root, session)
         calibration = json.loads(
             endomeasure("calibrate", str(tmp / "default_noise.h5"), "--model", "all", "--json")
@@ -149,7 +130,7 @@ Targets (issue 5): <= 0.05 px RMS noise-free, <= 0.1 px RMS with noise, every id
 
 
 def calibration_section(report: dict, floor: float) -> str:
-    truth = json.loads((SAMPLES / "simulation.json").read_text())["truth_model"]
+    truth = load_manifest(SAMPLES)["truth_model"]
     truth = dict(zip(truth["param_names"], truth["params"], strict=True))
     rows = []
     for name, m in report["models"].items():
