@@ -3,10 +3,11 @@ midpoint of the common perpendicular alone (its start), in the same run.
 
 Usage::
 
-    .venv/bin/python bench/bench_triangulate.py [--n N] [--write]
+    .venv/bin/python bench/bench_triangulate.py [--n N] [--no-write]
 
 Prints the timings (median of 3 runs) and the accuracy of both methods against the true
-points; ``--write`` also rewrites the ``triangulate`` section of docs/benchmarks.md.
+points, and rewrites the ``triangulate`` section of docs/benchmarks.md (``--no-write``:
+print only).
 The model is the raytrace design of ``bench_models.py`` (= ``tests/conftest.py``);
 correspondences are exact projections of random points 8-60 mm away plus 0.1 px of
 Gaussian noise per coordinate. Target (issue 7): ML under 1 s for 100,000.
@@ -49,7 +50,9 @@ def correspondences(model, n, rng):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=100_000)
-    parser.add_argument("--write", action="store_true", help="update docs/benchmarks.md")
+    parser.add_argument(
+        "--no-write", action="store_true", help="print only, do not update docs/benchmarks.md"
+    )
     args = parser.parse_args()
     rng = np.random.default_rng(SEED)
     model = raytrace_model()
@@ -79,7 +82,7 @@ classical start.
 ML steps per point (1, 2, 3, ...): {", ".join(str(int(s)) for s in steps[1:])}.
 Target: ML under {TARGET_S:g} s for 100,000; this run {"meets" if t_ml < TARGET_S else "misses"} it.
 """  # noqa: E501
-    if args.write:
+    if not args.no_write:
         write_section("triangulate", body)
     else:
         print(body)
