@@ -36,7 +36,6 @@ if TYPE_CHECKING:
 
 __all__ = [
     "TEMPLATES",
-    "UT_BETA",
     "ErrorMap",
     "error_map",
     "measurement_function",
@@ -44,17 +43,6 @@ __all__ = [
     "template_points",
     "volume_grid",
 ]
-
-
-UT_BETA: dict[str, float] = {}
-"""The UT's ``beta`` per kind where it differs from
-:data:`~endomeasure.solvers.uncertainty.DEFAULT_BETA` (2): none. Areas used 1 (a polygon
-facing the probe curves along its two tilts, and ``beta = 2/r`` is right for r equal
-curvatures), but no single beta is right for every polygon or polyline; the pixels of
-measurements of three or more points now get the UT's cross points
-(:attr:`~endomeasure.solvers.uncertainty.MeasurementFunction.cross_columns`), which make
-the variance second-order exact for any curvature, and beta only acts on the
-calibration parameters. Kept (empty) for callers that pass ``beta`` per kind."""
 
 
 def measurement_function(
@@ -78,9 +66,10 @@ def predict_measurement_error(
     pixels_left: np.ndarray,
     pixels_right: np.ndarray,
     *,
-    sigma: float,
+    sigma: float | None = None,
     rho_images: float = 0.0,
     rho_points: float = 0.0,
+    pixel_std: np.ndarray | None = None,
     param_cov: np.ndarray | None = None,
     method: str = "ut",
     **options,
@@ -96,15 +85,17 @@ def predict_measurement_error(
         The measurements' points in each half.
     sigma, rho_images, rho_points
         Image noise (see :func:`pixel_covariance`).
+    pixel_std : ndarray, shape (n, 2), px, optional
+        Per-point standard deviations instead of ``sigma`` (see :func:`input_covariance`).
     param_cov : ndarray, shape (F, F), optional
         Covariance of the model's free parameters (F = ``model.free_mask.sum()``);
         without it only image noise is propagated.
     method : {'ut', 'linear', 'mc'}
     **options
         Passed to the propagator (``alpha``, ``beta``, ``kappa``; ``n_samples``,
-        ``seed``, ``parts``; ``step``; ``cross``). ``beta`` defaults per kind
-        (:data:`UT_BETA`); the UT adds cross points on the pixels of measurements of
-        three or more points.
+        ``seed``, ``parts``; ``step``; ``cross``). The UT adds cross points on the
+        pixels of measurements of three or more points, which make the variance
+        second-order exact for any curvature of the measurement (so no per-kind beta).
 
     Returns
     -------
@@ -124,9 +115,7 @@ def predict_measurement_error(
                 f"model's free parameters, got {np.shape(param_cov)}"
             )
     f = measurement_function(model, kind, n, with_params=param_cov is not None)
-    if method == "ut" and kind in UT_BETA:
-        options.setdefault("beta", UT_BETA[kind])
-    cov, blocks = input_covariance(n, sigma, rho_images, rho_points, param_cov)
+    cov, blocks = input_covariance(n, sigma, rho_images, rho_points, param_cov, pixel_std=pixel_std)
     return propagate(f, f.inputs(ql, pixels_right), cov, method, blocks=blocks, **options)
 
 

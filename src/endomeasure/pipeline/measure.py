@@ -231,31 +231,6 @@ def _refusal(matches: list, half: Half, plot) -> MatchRefusedError:
     )
 
 
-def _predict_with_pixel_std(model, kind: str, ql, qr, pixel_std: np.ndarray, param_cov):
-    """Scaled-UT prediction with a separate standard deviation for every pixel coordinate.
-
-    ``pixel_std`` (n, 2): per point, the standard deviation of the left and of the right
-    pixel (px, both coordinates, independent). Same black box, sigma-point weights and
-    per-kind beta as :func:`~endomeasure.measure.predict.predict_measurement_error`, whose
-    input covariance allows one sigma only.
-    """
-    from endomeasure.measure.predict import UT_BETA, measurement_function
-    from endomeasure.solvers.uncertainty import propagate
-
-    n = ql.shape[0]
-    f = measurement_function(model, kind, n, with_params=param_cov is not None)
-    variances = np.repeat(np.asarray(pixel_std, dtype=np.float64) ** 2, 2, axis=1).ravel()
-    size = 4 * n + (0 if param_cov is None else param_cov.shape[0])
-    cov = np.zeros((size, size))
-    cov[: 4 * n, : 4 * n] = np.diag(variances)  # order u_L, v_L, u_R, v_R per point
-    blocks = {"image": slice(0, 4 * n)}
-    if param_cov is not None:
-        cov[4 * n :, 4 * n :] = param_cov
-        blocks["calibration"] = slice(4 * n, size)
-    options = {"beta": UT_BETA[kind]} if kind in UT_BETA else {}
-    return propagate(f, f.inputs(ql[None], qr[None]), cov, "ut", blocks=blocks, **options)
-
-
 # ----- an operator's measurement --------------------------------------------------------------
 
 
@@ -483,7 +458,9 @@ def measure_points(
             model, kind, ql, qr, sigma=sigma_px, param_cov=cm.param_cov, method="ut"
         )
     else:
-        pred = _predict_with_pixel_std(model, kind, ql, qr, pixel_std, cm.param_cov)
+        pred = predict_measurement_error(
+            model, kind, ql, qr, pixel_std=pixel_std, param_cov=cm.param_cov
+        )
     bias, std = float(pred.bias[0]), float(pred.std[0])
     std_image = float(pred.parts["image"][1][0]) if "image" in pred.parts else math.nan
     std_cal = float(pred.parts["calibration"][1][0]) if "calibration" in pred.parts else math.nan

@@ -183,10 +183,12 @@ def pixel_covariance(
 
 def input_covariance(
     n_points: int,
-    sigma: float,
+    sigma: float | None,
     rho_images: float = 0.0,
     rho_points: float = 0.0,
     param_cov: np.ndarray | None = None,
+    *,
+    pixel_std: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, slice]]:
     """Covariance of the stacked input ``[pixels, free parameters]`` and its blocks.
 
@@ -194,6 +196,10 @@ def input_covariance(
     ----------
     n_points, sigma, rho_images, rho_points
         See :func:`pixel_covariance`.
+    pixel_std : ndarray, shape (n_points, 2), px, optional
+        Instead of ``sigma`` and the correlations: an independent standard deviation per
+        point for its left and its right pixel (both coordinates), e.g. an exact clicked
+        pixel (0) and an automatic match at its own precision.
     param_cov : ndarray, shape (F, F), optional
         Covariance of the model's free parameters (in ``PARAM_NAMES`` order of the free
         ones), e.g. from calibration. Image and calibration errors are independent, so
@@ -205,7 +211,13 @@ def input_covariance(
     blocks : dict
         ``{'image': slice, 'calibration': slice}`` (the latter only with ``param_cov``).
     """
-    pix = pixel_covariance(n_points, sigma, rho_images, rho_points)
+    if pixel_std is not None:
+        # input order per point: u_L, v_L, u_R, v_R
+        pix = np.diag(np.repeat(np.asarray(pixel_std, dtype=np.float64) ** 2, 2, axis=1).ravel())
+    elif sigma is None:
+        raise BadInputError("the image noise is not given", hint="give sigma or pixel_std")
+    else:
+        pix = pixel_covariance(n_points, sigma, rho_images, rho_points)
     blocks = {"image": slice(0, 4 * n_points)}
     if param_cov is None:
         return pix, blocks
