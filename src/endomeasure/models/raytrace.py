@@ -203,12 +203,17 @@ class RaytraceModel(CameraModel):
                     new._cache[key] = value
         return new
 
-    def aim_map(self, half: Half) -> _AimMap:
-        """The cached polynomial start map of a half for ray aiming."""
+    def aim_map(self, half: Half, fine: bool = False) -> _AimMap:
+        """The cached ray-aiming start data of a half (polynomial and table).
+
+        ``fine`` selects the fine table, worth its building time (~0.15 s) only for
+        large batches of points; see ``_LUT_STEP_W``.
+        """
         half = Half.parse(half)
-        key = ("aim", half)
+        key = ("aim", half, bool(fine))
         if key not in self._cache:
-            self._cache[key] = _fit_aim_map(self, half)
+            step = _LUT_FINE_STEP_W if fine else _LUT_STEP_W
+            self._cache[key] = _fit_aim_map(self, half, step)
         return self._cache[key]
 
 
@@ -234,7 +239,7 @@ def _aim_features(wx, wy, q, exponents):
     return np.stack([wx**i * wy**j * q**k for i, j, k in exponents], axis=-1)
 
 
-def _fit_aim_map(model: RaytraceModel, half: Half) -> _AimMap:
+def _fit_aim_map(model: RaytraceModel, half: Half, step: float) -> _AimMap:
     """Fit the start map ``(wx, wy, q) -> (x, y)`` of one half.
 
     ``w = (P - C)_xy / (P - C)_z`` are the virtual-camera coordinates of a point P seen
@@ -286,15 +291,22 @@ def _fit_aim_map(model: RaytraceModel, half: Half) -> _AimMap:
     wx_all, wy_all = np.concatenate(wxs), np.concatenate(wys)
     no_lut = (np.full((1, 1, 1, 2), np.nan, dtype=np.float32), np.zeros(3), np.ones(3))
     poly = _AimMap(centre, exponents, coeffs, *no_lut)
-    return poly._replace(**_build_aim_table(model, half, poly, wx_all, wy_all))
+    return poly._replace(**_build_aim_table(model, half, poly, wx_all, wy_all, step))
 
 
-_LUT_STEP_W = 0.05  # table spacing in virtual-camera tangent units (~12 px at f = 230 px)
+_LUT_STEP_W = 0.05
+"""Table spacing in virtual-camera tangent units (about 15 px at f = 300 px): builds in
+~20 ms, cheap enough for every new model an optimiser makes."""
+_LUT_FINE_STEP_W = 0.015
+"""The fine table for large batches (``_FINE_TABLE_MIN_POINTS``): its closer start saves
+traces (0.05 gave 0.89 of cv2.projectPoints' speed on a million points, 0.015 gives
+1.04) but it takes ~0.15 s and ~2 MB per half to build (docs/benchmarks.md)."""
+_FINE_TABLE_MIN_POINTS = 200_000
 _LUT_DEPTHS_MM = (4.0, 1000.0)  # nearest and farthest slice of the table, from the centre C
-_LUT_SLICES = 8
+_LUT_SLICES = 10
 
 
-def _build_aim_table(model, half, poly: _AimMap, wx, wy) -> dict:
+def _build_aim_table(model, half, start: _AimMap, wx, wy, step: float) -> dict:
     """Tabulate exact aiming solutions on a regular (q, wy, wx) grid.
 
     A trilinear look-up in this table starts ray aiming within a few hundredths of a
@@ -303,20 +315,20 @@ def _build_aim_table(model, half, poly: _AimMap, wx, wy) -> dict:
     55-degree prism half is far from polynomial near the field edges). Nodes without a
     valid ray hold NaN; points there fall back to the polynomial.
     """
-    lo = np.array([wx.min(), wy.min()]) - _LUT_STEP_W
-    hi = np.array([wx.max(), wy.max()]) + _LUT_STEP_W
-    n_x, n_y = (np.ceil((hi - lo) / _LUT_STEP_W).astype(int) + 1).tolist()
+    lo = np.array([wx.min(), wy.min()]) - step
+    hi = np.array([wx.max(), wy.max()]) + step
+    n_x, n_y = (np.ceil((hi - lo) / step).astype(int) + 1).tolist()
     q_near, q_far = 1.0 / _LUT_DEPTHS_MM[0], 1.0 / _LUT_DEPTHS_MM[1]
     qs = np.linspace(q_far, q_near, _LUT_SLICES)
-    gq, gy, gx = np.meshgrid(qs, lo[1] + _LUT_STEP_W * np.arange(n_y),
-                             lo[0] + _LUT_STEP_W * np.arange(n_x), indexing="ij")  # fmt: skip
-    nodes = poly.centre + np.stack([gx, gy, np.ones_like(gx)], axis=-1) / gq[..., None]
-    x, y, status = aim_rays(model, nodes.reshape(-1, 3), half, poly)
+    gq, gy, gx = np.meshgrid(qs, lo[1] + step * np.arange(n_y),
+                             lo[0] + step * np.arange(n_x), indexing="ij")  # fmt: skip
+    nodes = start.centre + np.stack([gx, gy, np.ones_like(gx)], axis=-1) / gq[..., None]
+    x, y, status = aim_rays(model, nodes.reshape(-1, 3), half, start)
     table = np.stack([x, y], axis=-1).reshape(_LUT_SLICES, n_y, n_x, 2)
     return dict(
         lut=np.ascontiguousarray(table, dtype=np.float32),  # a start only: halves the cache load
         lut_origin=np.array([lo[0], lo[1], q_far]),
-        lut_step=np.array([_LUT_STEP_W, _LUT_STEP_W, qs[1] - qs[0]]),
+        lut_step=np.array([step, step, qs[1] - qs[0]]),
     )
 
 
@@ -372,7 +384,8 @@ def aim_rays(
     """
     half = Half.parse(half)
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-    aim = model.aim_map(half) if aim is None else aim
+    if aim is None:
+        aim = model.aim_map(half, fine=points.shape[0] >= _FINE_TABLE_MIN_POINTS)
     xy = np.empty((points.shape[0], 2))
     status = np.empty(points.shape[0], dtype=STATUS_DTYPE)
     dxy_dp = np.empty((points.shape[0] if jacobian else 0, 2, 3))

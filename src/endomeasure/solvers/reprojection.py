@@ -280,6 +280,7 @@ class RaytraceProjector(Projector):
         if start is not None:
             self._x[:], self._y[:] = start[:, 0], start[:, 1]
         self._free_names = {model.PARAM_NAMES[i] for i in self.free}
+        self._aim_maps = {}
         self._col = {model.PARAM_NAMES[i]: k for k, i in enumerate(self.free)}
 
     def state(self):
@@ -290,7 +291,12 @@ class RaytraceProjector(Projector):
 
         start = np.stack([self._x[idx], self._y[idx]], axis=-1)
         try:
-            x, y, status = aim_rays(model, P, half, start=start)
+            # The warm starts carry the iteration; the start map only seeds the inverse
+            # Jacobian and cold points, so the first model's map serves every later trial
+            # model of the optimisation (rebuilding it per trial step dominated the fit).
+            if half not in self._aim_maps:
+                self._aim_maps[half] = model.aim_map(half)
+            x, y, status = aim_rays(model, P, half, aim=self._aim_maps[half], start=start)
         except ValueError:  # a trial model so wild that the half has no valid rays
             x, y, status = start[:, 0], start[:, 1], np.full(idx.size, Status.NOT_CONVERGED)
         ok = status == Status.OK
