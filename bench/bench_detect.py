@@ -297,6 +297,9 @@ def throughput(files: list[str], board: str, split: int, repeats: int = 3) -> di
     return {key: n / value for key, value in timings.items()}
 
 
+SAMPLE_THROUGHPUT_BOARD = "chessboard:6x5:2"  # 12 images of the sample calibration set
+
+
 def _default_images(board_default: str, count: int = 12) -> tuple[list[str], str, int]:
     """Analytic renders written to a temp dir (pass --images for a real set)."""
     import tempfile
@@ -369,6 +372,14 @@ def main(argv: list[str] | None = None) -> int:
                 from endomeasure.features.split import find_split
 
                 split = find_split(cv2.imread(files[0], cv2.IMREAD_GRAYSCALE)).split
+        elif (ROOT / "sample_sessions" / "simulation.json").exists():
+            # the sample calibration set: its 2 mm board images, at the manifest's split
+            from endomeasure.simulate.manifest import board_groups, load_manifest
+
+            samples = ROOT / "sample_sessions"
+            board = SAMPLE_THROUGHPUT_BOARD
+            files = [str(p) for p in dict(board_groups(samples, "calib"))[board]]
+            split = int(load_manifest(samples)["split"])
         else:
             files, board, split = _default_images(args.board)
         rates = throughput(files, board, split)
