@@ -31,6 +31,7 @@ lint: install
 	$(VENV)/bin/ruff check src tests bench scripts
 
 # The committed sample set (calibration + test + scene, with ground truth): the default
-# preset, seed 0. Deterministic: rerunning it reproduces the files byte for byte.
+# preset, seed 0. Deterministic: rerunning it reproduces the images byte for byte (the truth
+# JSONs too, with the same ray-aiming code; see sample_sessions/README.md).
 samples: install
 	$(VENV)/bin/endomeasure simulate sample_sessions --preset default --set calib,test,scene --seed 0
