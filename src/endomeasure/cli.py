@@ -348,8 +348,9 @@ def detect(
     console.print(table)
     counts = report.counts
     found, examined = report.halves_found
+    split = "not found" if report.split is None else f"{report.split} ({report.split_source})"
     console.print(
-        f"split column {report.split} ({report.split_source}); images: {counts['ok']} ok, "
+        f"split column {split}; images: {counts['ok']} ok, "
         f"{counts['one-half']} one half, {counts['failed']} failed; halves with the board "
         f"{found}/{examined}; "
         + (f"stored in {report.session}" if report.stored else "nothing stored")
