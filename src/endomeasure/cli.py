@@ -826,20 +826,23 @@ def predict_error(
     if session is None and not (map_mode and model_file is not None):
         raise BadInputError("a session is needed (only --map --model-file works without one)")
     console = _stderr_console()
-    calibration = not no_calibration
+    # the noise assumptions every mode shares
+    noise = dict(
+        sigma=sigma,
+        rho_images=rho_images,
+        rho_points=rho_points,
+        method=method,
+        calibration=not no_calibration,
+        n_samples=samples,
+    )
     if board_test:
         from endomeasure.pipeline.predict import predict_board_test
 
         report = predict_board_test(
             session,
             model,
-            sigma=sigma,
-            rho_images=rho_images,
-            rho_points=rho_points,
-            method=method,
-            calibration=calibration,
+            **noise,
             zone_mm=zone_mm,
-            n_samples=samples,
             plot=plot,
         )
         if json_output:
@@ -853,12 +856,7 @@ def predict_error(
         r = predict_stored_measurement(
             session,
             measurement,
-            sigma=sigma,
-            rho_images=rho_images,
-            rho_points=rho_points,
-            method=method,
-            calibration=calibration,
-            n_samples=samples,
+            **noise,
         )
         if json_output:
             _print_json(r.to_dict())
@@ -888,12 +886,7 @@ def predict_error(
         size_mm=size_mm,
         depths=depths,
         grid=(n_u, n_v),
-        sigma=sigma,
-        rho_images=rho_images,
-        rho_points=rho_points,
-        method=method,
-        calibration=calibration,
-        n_samples=samples,
+        **noise,
         plot=plot,
         csv=csv,
     )

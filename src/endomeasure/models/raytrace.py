@@ -27,7 +27,6 @@ import numpy as np
 
 from endomeasure.conventions import STATUS_DTYPE, Half, Status
 from endomeasure.geometry.distortion import (
-    distort,
     distort_jacobian,
     max_monotonic_radius2,
     undistort,
@@ -165,27 +164,17 @@ class RaytraceModel(CameraModel):
         status = np.where(und.converged, traced.status, Status.NOT_CONVERGED)
         return traced.origins, traced.directions, status.astype(STATUS_DTYPE)
 
-    def _lens_to_pixels(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        xd, yd = distort(x, y, self._lens_coeffs())
-        return np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=-1)
-
     # ----- forward projection by ray aiming ---------------------------------------------
     def _project(self, points, half):
         _, _, status, pixels = aim_rays(self, points, half, pixels=True)
         return pixels, status
 
     def _project_jacobian(self, points, half):
-        x, y, status, dxy_dp = aim_rays(self, points, half, jacobian=True)
+        x, y, status, dxy_dp, pixels = aim_rays(self, points, half, jacobian=True, pixels=True)
         j11, j12, j21, j22 = distort_jacobian(x, y, self._lens_coeffs())
         D = np.stack([np.stack([j11, j12], -1), np.stack([j21, j22], -1)], -2)
         dq_dp = np.array([self.fx, self.fy])[:, None] * (D @ dxy_dp)
-        return self._lens_to_pixels(x, y), self._lens_status(x, y, status), dq_dp
-
-    def _lens_status(self, x, y, status):
-        """Flag lens coordinates beyond the fold-back radius of the distortion polynomial."""
-        outside_lens = (x * x + y * y) > max_monotonic_radius2(self.k1, self.k2, self.k3)
-        status = np.where((status == Status.OK) & outside_lens, Status.OUTSIDE_HALF, status)
-        return status.astype(STATUS_DTYPE)
+        return pixels, status, dq_dp
 
     def with_params(self, params: np.ndarray) -> RaytraceModel:
         """A new model with other parameters.
