@@ -153,6 +153,13 @@ def _print_json(document: Any) -> None:
     sys.stdout.flush()
 
 
+def _sigma_text(sigma: Any) -> str:
+    """Image noise for display: one value, or u and v."""
+    if isinstance(sigma, (int, float)):
+        return f"{sigma:.4f} px"
+    return f"u {sigma[0]:.4f}, v {sigma[1]:.4f} px"
+
+
 JsonOption = Annotated[
     bool, typer.Option("--json", help="Print one JSON document on stdout instead of tables.")
 ]
@@ -440,9 +447,11 @@ def calibrate(
     from endomeasure.pipeline.calibrate import calibrate_session
 
     console = _stderr_console()
-    with console.status("calibrating", spinner="dots") if (
-        console.is_terminal and not json_output
-    ) else contextlib.nullcontext():
+    with (
+        console.status("calibrating", spinner="dots")
+        if (console.is_terminal and not json_output)
+        else contextlib.nullcontext()
+    ):
         report = calibrate_session(session, model, glass_index, free_index, seed, plot)
     if json_output:
         _print_json(report.to_dict())
@@ -540,8 +549,13 @@ def measure(
         ),
     ] = 5.0,
     sigma: Annotated[
-        float | None,
-        typer.Option("--sigma", help="Image noise, px (default: from the calibration residuals)."),
+        str | None,
+        typer.Option(
+            "--sigma",
+            metavar="PX|U,V",
+            help="Image noise per coordinate, px, or separately for u and v "
+            "(default: from the calibration residuals).",
+        ),
     ] = None,
     board_test: Annotated[
         bool,
@@ -589,7 +603,12 @@ def measure(
         return
 
     from endomeasure.errors import BadInputError
-    from endomeasure.pipeline.measure import MatchRefusedError, measure_points, parse_pixel
+    from endomeasure.pipeline.measure import (
+        MatchRefusedError,
+        measure_points,
+        parse_pixel,
+        parse_sigma,
+    )
 
     if image is None:
         raise BadInputError("a measurement needs --image NAME", hint="or use --board-test")
@@ -606,7 +625,7 @@ def measure(
             None if not right else [parse_pixel(t) for t in right],
             kind,
             warn_percent=warn_percent,
-            sigma=sigma,
+            sigma=parse_sigma(sigma),
             patch=patch,
             plot=plot,
         )
@@ -698,7 +717,7 @@ def _render_measurement(console: Console, r: Any) -> None:
     )
     console.print(
         f"uncertainty: image noise {r.std_image:.4f}, calibration {r.std_calibration:.4f} "
-        f"{r.unit} (sigma {r.sigma_px:.4f} px from {r.sigma_source}; {r.method.upper()})"
+        f"{r.unit} (sigma {_sigma_text(r.sigma_px)} from {r.sigma_source}; {r.method.upper()})"
     )
     if r.warning:
         console.print(
@@ -764,8 +783,13 @@ def predict_error(
     ] = None,
     model: Annotated[str, typer.Option("--model", help="Calibrated model.")] = "raytrace",
     sigma: Annotated[
-        float | None,
-        typer.Option("--sigma", help="Image noise, px (default: from the calibration residuals)."),
+        str | None,
+        typer.Option(
+            "--sigma",
+            metavar="PX|U,V",
+            help="Image noise per coordinate, px, or separately for u and v "
+            "(default: from the calibration residuals).",
+        ),
     ] = None,
     rho_images: Annotated[
         float, typer.Option("--rho-images", help="Correlation of a point's left/right errors.")
@@ -827,8 +851,10 @@ def predict_error(
         raise BadInputError("a session is needed (only --map --model-file works without one)")
     console = _stderr_console()
     # the noise assumptions every mode shares
+    from endomeasure.pipeline.measure import parse_sigma
+
     noise = dict(
-        sigma=sigma,
+        sigma=parse_sigma(sigma),
         rho_images=rho_images,
         rho_points=rho_points,
         method=method,
@@ -866,7 +892,7 @@ def predict_error(
             f"predicted bias {r.bias:+.4f}, std {r.std:.4f} {r.unit} (image {r.std_image:.4f}, "
             f"calibration {r.std_calibration:.4f}), 95% +-{r.ci95:.4f} = "
             f"{r.relative_percent:.2f}% of the value; {r.method.upper()}, "
-            f"sigma {r.sigma_px:.4f} px ({r.sigma_source}), rho images {r.rho_images:g}, "
+            f"sigma {_sigma_text(r.sigma_px)} ({r.sigma_source}), rho images {r.rho_images:g}, "
             f"rho points {r.rho_points:g}"
         )
         return
@@ -918,9 +944,9 @@ def predict_error(
         )
     console.print(table)
     console.print(
-        f"sigma {r.sigma_px:.4f} px ({r.sigma_source}), rho images {r.rho_images:g}, rho points "
-        f"{r.rho_points:g}, calibration covariance {'in' if r.calibration else 'not'} included; "
-        f"{r.method.upper()}"
+        f"sigma {_sigma_text(r.sigma_px)} ({r.sigma_source}), rho images {r.rho_images:g}, "
+        f"rho points {r.rho_points:g}, calibration covariance "
+        f"{'in' if r.calibration else 'not'} included; {r.method.upper()}"
     )
     for label, path in (("plot", r.plot), ("data", r.csv)):
         if path:
@@ -932,7 +958,7 @@ def _render_board_prediction(console: Console, r: Any) -> None:
 
     table = Table(
         title=f"predicted vs actual board-test errors ({r.model}, {r.method.upper()}, sigma "
-        f"{r.sigma_px:.4f} px from {r.sigma_source}, rho images {r.rho_images:g}, rho points "
+        f"{_sigma_text(r.sigma_px)} from {r.sigma_source}, rho images {r.rho_images:g}, rho points "
         f"{r.rho_points:g})",
         title_justify="left",
     )

@@ -78,6 +78,47 @@ def test_board_test_prediction_matches_errors_of_known_noise(noisy_session, tmp_
     assert rec.attrs["within_band"] == pytest.approx(doc["within_band"])
 
 
+NOISE_UV_PX = (0.01, 0.035)
+"""Per-axis detection noise (u along the baseline, v across it) for the test below: the
+depth of a corner depends on u alone, so v noise that a single sigma would spread over u
+must not inflate the predicted point-to-plane error."""
+
+
+def _pooled_ratio(zones, kind):
+    """Actual / predicted std of one kind, pooled over its zones."""
+    rows = [z for z in zones if z["kind"] == kind]
+    n = np.array([z["n"] for z in rows])
+    actual = np.sum((n - 1) * np.array([z["actual_std"] for z in rows]) ** 2) / np.sum(n - 1)
+    predicted = np.sum(n * np.array([z["predicted_std"] for z in rows]) ** 2) / np.sum(n)
+    return float(np.sqrt(actual / predicted))
+
+
+def test_separate_u_and_v_noise_is_predicted_per_axis(tmp_path):
+    session = build_session(
+        tmp_path / "uv.h5", np.random.default_rng(11), noise_px=NOISE_UV_PX,
+        offsets=((0.0, 0.0), (0.0, 0.5)),
+    )[0]  # fmt: skip
+    pair = f"{NOISE_UV_PX[0]},{NOISE_UV_PX[1]}"
+    per_axis = _invoke(session, "--board-test", "--sigma", pair, "--no-calibration", "--json")
+    assert per_axis.exit_code == 0, per_axis.output
+    doc = json.loads(per_axis.stdout)
+    assert doc["sigma_px"] == list(NOISE_UV_PX)
+    for kind in ("x-segment", "y-segment", "point-plane", "area"):
+        assert _pooled_ratio(doc["zones"], kind) == pytest.approx(1.0, abs=STD_RATIO_TOL), kind
+    # one sigma (the RMS of the two) predicts the depth-driven point-to-plane error from
+    # u noise 2.5 times too large
+    rms = float(np.sqrt(np.mean(np.square(NOISE_UV_PX))))
+    single = _invoke(session, "--board-test", "--sigma", rms, "--no-calibration", "--json")
+    assert _pooled_ratio(json.loads(single.stdout)["zones"], "point-plane") < 0.6
+    text = _invoke(session, "--board-test", "--sigma", pair, "--no-calibration")
+    assert text.exit_code == 0 and f"u {NOISE_UV_PX[0]:.4f}, v {NOISE_UV_PX[1]:.4f} px" in (
+        text.stdout + text.stderr
+    )
+    for bad in ("0.01,x", "0.01,0.02,0.03", "-0.01", "0.01,nan"):
+        r = _invoke(session, "--board-test", "--sigma", bad)
+        assert r.exit_code == 2 and len(r.stderr.strip().splitlines()) == 1, (bad, r.output)
+
+
 def test_correlation_between_halves_lowers_the_board_prediction(noisy_session):
     def mean_std(rho):
         r = _invoke(

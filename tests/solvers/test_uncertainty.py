@@ -238,9 +238,44 @@ def test_pixel_covariance_structure():
     assert np.linalg.eigvalsh(pixel_covariance(3, 1.0, -1.0, -0.5)).min() > -1e-12
 
 
+def test_pixel_covariance_per_axis():
+    su, sv, ri, rp = 0.02, 0.05, 0.4, 0.2
+    P = pixel_covariance(2, (su, sv), ri, rp)
+    assert np.diag(P) == pytest.approx(np.tile([su**2, sv**2], 4))
+    assert P[0, 2] == pytest.approx(ri * su**2)  # u_L, u_R of one point
+    assert P[1, 3] == pytest.approx(ri * sv**2)  # v_L, v_R
+    assert P[1, 5] == pytest.approx(rp * sv**2)  # v_L of points 1 and 2
+    assert P[0, 1] == 0.0 and P[0, 5] == 0.0  # u never correlates with v
+    # a pair of equal values is the scalar form
+    assert pixel_covariance(3, (0.1, 0.1), ri, rp) == pytest.approx(
+        pixel_covariance(3, 0.1, ri, rp)
+    )
+
+
+def test_per_axis_sigma_scales_the_depth_error_with_u_only(raytrace_model):
+    """The depth of a point comes from its disparity (u); v noise barely moves it, so the
+    predicted depth std must follow sigma_u."""
+    p = np.array([[0.5, -0.3, 20.0]])
+    f = MeasurementFunction(raytrace_model, lambda x: x[..., 0, 2], 1)
+    x0 = f.inputs(
+        raytrace_model.project(p, "left").pixels, raytrace_model.project(p, "right").pixels
+    )
+    only_u = linearised(f, x0, pixel_covariance(1, (0.03, 0.0))).std[0]
+    both = linearised(f, x0, pixel_covariance(1, (0.03, 0.3))).std[0]
+    assert both == pytest.approx(only_u, rel=0.05)
+    only_v = linearised(f, x0, pixel_covariance(1, (0.0, 0.03))).std[0]
+    assert only_v < 0.1 * only_u
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
-    [((2, -1.0), "sigma"), ((2, 0.1, 1.5), "rho_images"), ((3, 0.1, 0.0, -0.6), "rho_points")],
+    [
+        ((2, -1.0), "sigma"),
+        ((2, (0.1, -0.1)), "sigma"),
+        ((2, (0.1, 0.1, 0.1)), "sigma"),
+        ((2, 0.1, 1.5), "rho_images"),
+        ((3, 0.1, 0.0, -0.6), "rho_points"),
+    ],
 )
 def test_bad_noise_descriptions_are_refused(args, message):
     with pytest.raises(BadInputError, match=message):

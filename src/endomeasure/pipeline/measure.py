@@ -58,6 +58,7 @@ import numpy as np
 
 from endomeasure.conventions import Half, Status, in_half
 from endomeasure.errors import BadInputError, GoalNotMetError
+from endomeasure.solvers.uncertainty import checked_sigma
 
 __all__ = [
     "DEFAULT_PATCH_PX",
@@ -115,6 +116,24 @@ def parse_pixel(text: str) -> tuple[float, float]:
     if not (math.isfinite(u) and math.isfinite(v)):
         raise BadInputError(f"the pixel {text!r} is not finite")
     return u, v
+
+
+def parse_sigma(text: str | None) -> float | tuple[float, float] | None:
+    """``"PX"`` (every coordinate) or ``"U,V"`` (u and v separately) -> the image noise in
+    px; ``None`` stays ``None``; anything else is a :class:`BadInputError`."""
+    if text is None:
+        return None
+    parts = str(text).replace(" ", "").split(",")
+    try:
+        if len(parts) not in (1, 2):
+            raise ValueError
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise BadInputError(
+            f"cannot read the image noise {text!r}",
+            hint="give --sigma PX for every coordinate or --sigma U,V, e.g. --sigma 0.013,0.016",
+        ) from None
+    return checked_sigma(values[0] if len(values) == 1 else values)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -279,7 +298,7 @@ class MeasureReport:
     ci95: float
     relative_percent: float
     warn_percent: float
-    sigma_px: float
+    sigma_px: float | tuple[float, float]
     sigma_source: str
     method: str
     plot: str | None = None
@@ -321,7 +340,7 @@ def measure_points(
     kind: str,
     *,
     warn_percent: float = DEFAULT_WARN_PERCENT,
-    sigma: float | None = None,
+    sigma: float | tuple[float, float] | None = None,
     store: bool = True,
     patch: int = DEFAULT_PATCH_PX,
     plot: str | Path | None = None,
@@ -342,9 +361,9 @@ def measure_points(
         One of :data:`endomeasure.measure.kinds.KINDS`.
     warn_percent : float
         Accuracy-index threshold, percent.
-    sigma : float, optional, px
-        Image noise of every coordinate; default: from the calibration residuals, or
-        for matched points the search's precision (module docstring).
+    sigma : float or (float, float), optional, px
+        Image noise of every coordinate, or of u and v; default: from the calibration
+        residuals, or for matched points the search's precision (module docstring).
     store : bool
         Write the measurement record.
     patch : int, px
@@ -450,9 +469,7 @@ def measure_points(
             )
         sigma_px, source = cm.sigma_px, "calibration residuals"
     else:
-        if not (math.isfinite(sigma) and sigma >= 0):
-            raise BadInputError(f"sigma must be a non-negative number of pixels, not {sigma}")
-        sigma_px, source = float(sigma), "given"
+        sigma_px, source = checked_sigma(sigma), "given"
     if pixel_std is None:
         pred = predict_measurement_error(
             model, kind, ql, qr, sigma=sigma_px, param_cov=cm.param_cov, method="ut"

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from endomeasure.errors import BadInputError
+from endomeasure.solvers.uncertainty import checked_sigma
 
 __all__ = [
     "BAND_SIGMAS",
@@ -64,15 +65,15 @@ def _check_rho(rho_images: float, rho_points: float) -> None:
             raise BadInputError(f"--{name} must lie in [-1, 1], not {rho}")
 
 
-def _sigma(given: float | None, cm, what: str) -> tuple[float, str]:
+def _sigma(given, cm, what: str) -> tuple[float | tuple[float, float], str]:
+    """The image noise to use: ``given`` (one number, or a pair for u and v, px) or the
+    model's calibration-residual sigma."""
     if given is not None:
-        if not (math.isfinite(given) and given >= 0):
-            raise BadInputError(f"sigma must be a non-negative number of pixels, not {given}")
-        return float(given), "given"
+        return checked_sigma(given), "given"
     if cm is None or cm.sigma_px is None:
         raise BadInputError(
             f"{what} carries no calibration residuals to estimate the image noise",
-            hint="give --sigma PX",
+            hint="give --sigma PX (or U,V)",
         )
     return cm.sigma_px, "calibration residuals"
 
@@ -95,7 +96,7 @@ class BoardPredictionReport:
     session: str
     model: str
     method: str
-    sigma_px: float
+    sigma_px: float | tuple[float, float]
     sigma_source: str
     rho_images: float
     rho_points: float
@@ -256,7 +257,7 @@ def predict_board_test(
     session: str | Path,
     model: str = "raytrace",
     *,
-    sigma: float | None = None,
+    sigma: float | tuple[float, float] | None = None,
     rho_images: float = 0.0,
     rho_points: float = 0.0,
     method: str = "ut",
@@ -369,7 +370,7 @@ class MeasurementPredictionReport:
     kind: str
     unit: str
     method: str
-    sigma_px: float
+    sigma_px: float | tuple[float, float]
     sigma_source: str
     rho_images: float
     rho_points: float
@@ -391,7 +392,7 @@ def predict_stored_measurement(
     measurement: str,
     *,
     model: str | None = None,
-    sigma: float | None = None,
+    sigma: float | tuple[float, float] | None = None,
     rho_images: float = 0.0,
     rho_points: float = 0.0,
     method: str = "ut",
@@ -503,7 +504,7 @@ class MapReport:
     size_mm: float
     true: float
     method: str
-    sigma_px: float
+    sigma_px: float | tuple[float, float]
     sigma_source: str
     rho_images: float
     rho_points: float
@@ -563,7 +564,7 @@ def predict_map(
     size_mm: float = 1.0,
     depths: str | Sequence[float] = DEFAULT_DEPTHS_MM,
     grid: tuple[int, int] = (24, 18),
-    sigma: float | None = None,
+    sigma: float | tuple[float, float] | None = None,
     rho_images: float = 0.0,
     rho_points: float = 0.0,
     method: str = "ut",

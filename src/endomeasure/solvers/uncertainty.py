@@ -54,6 +54,8 @@ __all__ = [
     "linearised",
     "monte_carlo",
     "pixel_covariance",
+    "pixel_sigmas",
+    "checked_sigma",
     "propagate",
     "sigma_from_residuals",
     "unscented",
@@ -138,16 +140,38 @@ class Propagation(NamedTuple):
 # ----- input covariance -------------------------------------------------------------------
 
 
+def pixel_sigmas(sigma) -> np.ndarray:
+    """``(sigma_u, sigma_v)`` of an image-noise argument: one number for both coordinates or
+    a pair (u, v), px. Anything else, negative or not finite is a :class:`BadInputError`."""
+    s = np.asarray(sigma, dtype=np.float64) if sigma is not None else np.array(np.nan)
+    if s.ndim == 0:
+        s = np.repeat(s, 2)
+    if s.shape != (2,) or not (np.all(np.isfinite(s)) and np.all(s >= 0)):
+        raise BadInputError(
+            f"sigma must be a non-negative number of pixels or a pair (u, v), got {sigma}"
+        )
+    return s
+
+
+def checked_sigma(sigma) -> float | tuple[float, float]:
+    """An image-noise argument validated by :func:`pixel_sigmas`, as given: a float, or a
+    ``(sigma_u, sigma_v)`` pair of floats."""
+    s = pixel_sigmas(sigma)
+    return float(s[0]) if np.ndim(sigma) == 0 else (float(s[0]), float(s[1]))
+
+
 def pixel_covariance(
-    n_points: int, sigma: float, rho_images: float = 0.0, rho_points: float = 0.0
+    n_points: int, sigma, rho_images: float = 0.0, rho_points: float = 0.0
 ) -> np.ndarray:
     """Covariance of the stacked pixel coordinates of a measurement's points.
 
     Parameters
     ----------
     n_points : int
-    sigma : float, px
-        Standard deviation of each image coordinate.
+    sigma : float or (float, float), px
+        Standard deviation of each image coordinate, or of u and of v separately (the
+        detection noise along the baseline, which sets the disparity, and across it need
+        not be the same).
     rho_images : float
         Correlation between the errors of one point's left and right pixel (same
         coordinate, u with u and v with v).
@@ -161,14 +185,13 @@ def pixel_covariance(
 
     Notes
     -----
-    ``P = sigma^2 (C_points (x) C_halves (x) I_2)`` with ``C_points = (1 - rho_points) I +
-    rho_points 1 1^T`` and ``C_halves = [[1, rho_images], [rho_images, 1]]`` (Kronecker
-    products), so a left u of one point and a right u of another correlate by
+    ``P = C_points (x) C_halves (x) diag(sigma_u^2, sigma_v^2)`` with ``C_points = (1 -
+    rho_points) I + rho_points 1 1^T`` and ``C_halves = [[1, rho_images], [rho_images, 1]]``
+    (Kronecker products), so a left u of one point and a right u of another correlate by
     ``rho_points * rho_images``. It is positive semi-definite exactly when both factors
     are: ``|rho_images| <= 1`` and ``-1/(n-1) <= rho_points <= 1``.
     """
-    if not (np.isfinite(sigma) and sigma >= 0):
-        raise BadInputError(f"sigma must be a non-negative number of pixels, got {sigma}")
+    s = pixel_sigmas(sigma)
     if not (-1.0 <= rho_images <= 1.0):
         raise BadInputError(f"rho_images must lie in [-1, 1], got {rho_images}")
     low = -1.0 / (n_points - 1) if n_points > 1 else -1.0
@@ -178,12 +201,12 @@ def pixel_covariance(
         )
     c_points = (1.0 - rho_points) * np.eye(n_points) + rho_points
     c_halves = np.array([[1.0, rho_images], [rho_images, 1.0]])
-    return sigma**2 * np.kron(np.kron(c_points, c_halves), np.eye(2))
+    return np.kron(np.kron(c_points, c_halves), np.diag(s**2))
 
 
 def input_covariance(
     n_points: int,
-    sigma: float | None,
+    sigma: float | tuple[float, float] | None,
     rho_images: float = 0.0,
     rho_points: float = 0.0,
     param_cov: np.ndarray | None = None,
