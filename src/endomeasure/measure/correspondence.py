@@ -49,8 +49,9 @@ The search
 5. **Sub-pixel.** A parabola through the peak and its neighbours in curve parameter
    gives the start; then a Gauss-Newton (Lucas-Kanade) refinement of the pixel, a small
    linear shape correction (the surface's tilt), gain, offset and brightness ramp on
-   the warped patch, both patches sampled by cubic B-spline interpolation. The pixel is free across the curve, so the final pair is *not*
-   forced onto the epipolar curve and its ray gap (the common perpendicular of the two
+   the warped patch, both patches sampled by cubic B-spline interpolation. The pixel is
+   free across the curve, so the final pair is *not* forced onto the epipolar curve
+   and its ray gap (the common perpendicular of the two
    rays) is a real check of the calibration and the match.
 
 Texture criterion
@@ -694,9 +695,9 @@ def _refine(
         if not np.all(_inside(pos, (cols[0] + 0.5, cols[1] - 0.5), height)):
             return None
         h = _GRADIENT_STEP_PX
-        stencil = pos[None] + np.array([[0.0, 0.0], [h, 0.0], [-h, 0.0], [0.0, h], [0.0, -h]])[
-            :, None, :
-        ]
+        stencil = (
+            pos[None] + np.array([[0.0, 0.0], [h, 0.0], [-h, 0.0], [0.0, h], [0.0, -h]])[:, None, :]
+        )
         values, up, um, vp, vm = _sample_spline(grey, stencil[..., 0], stencil[..., 1], cols)
         gu = (up - um) / (2 * h)
         gv = (vp - vm) / (2 * h)
