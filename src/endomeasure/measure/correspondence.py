@@ -818,10 +818,12 @@ def _match_one(
     second = _second_peak(ncc, search.valid, best)
     ratio = max(second, 0.0) / score if score > 0 else np.nan
     fields.update(candidate=candidate, score=score, signal_score=signal, second_ratio=ratio)
-    # a second peak counts only if it would itself pass as a match (a random landscape of
-    # low correlations says nothing about repetition)
-    second_signal = second * signal / score if score > 0 else np.nan
-    if ratio > settings.max_second_ratio and second_signal >= settings.min_score:
+    # ambiguous only if the best is itself credible (a random landscape of low
+    # correlations says nothing about repetition); a second peak within the ratio of a
+    # credible best is then a second credible candidate, even if noise puts it just under
+    # the threshold (requiring the second to pass on its own split repeated texture at
+    # the threshold between 'ambiguous' and a failed back search, 'outside')
+    if ratio > settings.max_second_ratio and signal >= settings.min_score:
         return _refuse(
             pixel, half, MatchStatus.AMBIGUOUS,
             f"{where}: a second candidate scores {ratio:.2f} of the best "
@@ -842,7 +844,8 @@ def _match_one(
 
     if check_back:
         back = _search(model, grey, candidate, other_half(half), settings)
-        mutual, back_px = _mutual(back, pixel, settings)
+        noise_factor = signal / score if score > 0 else np.nan
+        mutual, back_px = _mutual(back, pixel, settings, noise_factor)
         fields.update(back_px=back_px)
         if not mutual:
             return _refuse(
@@ -902,12 +905,17 @@ def _match_one(
     )  # fmt: skip
 
 
-def _mutual(back: _Search | None, pixel: np.ndarray, settings: _Settings) -> tuple[bool, float]:
+def _mutual(
+    back: _Search | None, pixel: np.ndarray, settings: _Settings, noise_factor: float
+) -> tuple[bool, float]:
     """Whether the back search from the candidate confirms the query pixel.
 
     Confirmed if its peak is within :data:`BACK_TOLERANCE_PX` of the query, or if the
     back curve passes the query and scores it within the ambiguity ratio of its best
-    (repeated texture is then reported as ambiguous, not as a point seen once).
+    *and* as a credible match (its NCC times ``noise_factor``, the forward search's
+    noise correction, reaching ``min_score``): repeated texture is then reported as
+    ambiguous, not as a point seen once, while a flat landscape of low correlations,
+    what a point the other half does not see meets, confirms nothing.
     """
     if back is None or back.best < 0:
         return False, np.nan
@@ -920,7 +928,9 @@ def _mutual(back: _Search | None, pixel: np.ndarray, settings: _Settings) -> tup
     if gaps[nearest] > BACK_TOLERANCE_PX:
         return False, distance
     best = back.ncc[back.best]
-    return bool(back.ncc[nearest] >= settings.max_second_ratio * best), distance
+    at_query = back.ncc[nearest]
+    credible = bool(at_query * noise_factor >= settings.min_score)
+    return bool(at_query >= settings.max_second_ratio * best and credible), distance
 
 
 def _settings(depth_range_mm, patch, warp, min_score, max_second_ratio, max_precision_px):
