@@ -512,7 +512,8 @@ def _texture(u, v):
     """Smooth analytic texture (wavelengths 4.5-13 px), grey levels around 128."""
     return (
         128 + 30 * np.sin(2 * np.pi * (u / 7.3 + v / 11.1))
-        + 25 * np.cos(2 * np.pi * (0.8 * u - v) / 4.5) + 20 * np.sin(2 * np.pi * (u / 13.0 - v / 5.9) + 1.0)
+        + 25 * np.cos(2 * np.pi * (0.8 * u - v) / 4.5)
+        + 20 * np.sin(2 * np.pi * (u / 13.0 - v / 5.9) + 1.0)
     )  # fmt: skip
 
 
