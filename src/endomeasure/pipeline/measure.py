@@ -40,7 +40,8 @@ The uncertainty input of a matched point is not the calibration-residual sigma o
 detected corner. The clicked pixel *defines* the point (standard deviation 0); its match
 is uncertain by the search's predicted precision ``precision_px`` (the standard deviation
 of the relative shift of two noisy patches, from the patch's texture and the image
-noise), applied to both coordinates of the matched pixel. ``sigma`` (``--sigma``)
+noise, with the search's systematic misfit added in quadrature), applied to both
+coordinates of the matched pixel. ``sigma`` (``--sigma``)
 overrides this with one value for every coordinate of both halves.
 """
 
