@@ -567,5 +567,7 @@ def test_back_search_confirms_only_with_a_credible_score():
                            settings, 1.1)  # fmt: skip
     assert confirmed
     near = flat.copy()
-    near[10] = 0.2  # the back search's own peak at the query: confirmed whatever its score
+    near[10] = 0.2  # the back search's own peak at the query, but not a credible score
+    assert not _mutual(_Search(curve, np.ones(m, bool), None, near, 10), query, settings, 1.1)[0]
+    near[10] = 0.75  # credible once corrected for noise (0.75 x 1.1 >= 0.8)
     assert _mutual(_Search(curve, np.ones(m, bool), None, near, 10), query, settings, 1.1)[0]

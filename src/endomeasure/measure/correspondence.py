@@ -848,11 +848,16 @@ def _match_one(
         mutual, back_px = _mutual(back, pixel, settings, noise_factor)
         fields.update(back_px=back_px)
         if not mutual:
+            why = (
+                f"its best candidate {_fmt(candidate)} matches a different point back"
+                if not back_px <= BACK_TOLERANCE_PX
+                else f"nothing along its epipolar curve correlates credibly (best {score:.2f}, "
+                f"{signal:.2f} corrected for noise, below {settings.min_score:g})"
+            )
             return _refuse(
                 pixel, half, MatchStatus.OUTSIDE,
-                f"{where}: its best candidate {_fmt(candidate)} matches a different point "
-                "back, so the point is probably not seen in the other half (occluded or "
-                "out of its view)",
+                f"{where}: {why}, so the point is probably not seen in the other half "
+                "(occluded or out of its view)",
                 **fields,
             )  # fmt: skip
     if not signal >= settings.min_score:
@@ -911,17 +916,18 @@ def _mutual(
     """Whether the back search from the candidate confirms the query pixel.
 
     Confirmed if its peak is within :data:`BACK_TOLERANCE_PX` of the query, or if the
-    back curve passes the query and scores it within the ambiguity ratio of its best
-    *and* as a credible match (its NCC times ``noise_factor``, the forward search's
-    noise correction, reaching ``min_score``): repeated texture is then reported as
-    ambiguous, not as a point seen once, while a flat landscape of low correlations,
-    what a point the other half does not see meets, confirms nothing.
+    back curve passes the query and scores it within the ambiguity ratio of its best,
+    in both cases only if it scores the query as a credible match (its NCC times
+    ``noise_factor``, the forward search's noise correction, reaching ``min_score``):
+    repeated texture is then reported as ambiguous, not as a point seen once, while a
+    flat landscape of low correlations, what a point the other half does not see
+    meets, confirms nothing.
     """
     if back is None or back.best < 0:
         return False, np.nan
     distance = float(np.linalg.norm(back.curve.pixels[back.best] - pixel))
     if distance <= BACK_TOLERANCE_PX:
-        return True, distance
+        return bool(back.ncc[back.best] * noise_factor >= settings.min_score), distance
     gaps = np.linalg.norm(back.curve.pixels - pixel, axis=-1)
     gaps[~back.valid] = np.inf
     nearest = int(np.argmin(gaps))
