@@ -571,3 +571,91 @@ def test_back_search_confirms_only_with_a_credible_score():
     assert not _mutual(_Search(curve, np.ones(m, bool), None, near, 10), query, settings, 1.1)[0]
     near[10] = 0.75  # credible once corrected for noise (0.75 x 1.1 >= 0.8)
     assert _mutual(_Search(curve, np.ones(m, bool), None, near, 10), query, settings, 1.1)[0]
+
+
+# ----- the predicted precision --------------------------------------------------------------
+
+
+SPLINE_VARIANCE_TOL = 1e-5
+"""The tabulated spline weights against scipy's spline interpolation of unit impulses
+(the table's linear interpolation is exact to about 1e-7; the weights beyond 10 pixels
+are below 2e-6)."""
+CORRELATION_TOL = 0.01
+"""Relative error of the mean correlation row sum, which leaves out weights beyond 4
+pixels (below 0.005; their share of the sums is some 0.3 %)."""
+WEAK_NOISE_DN = 12.0
+"""Noise that makes the test plane's texture weak: predicted precisions 0.1-0.3 px, the
+regime of the simulator's metal at its sensor noise, where the first-order precision
+(the relative shift of two noisy patches alone) is about 2x optimistic."""
+Z_RMS_RANGE = (0.75, 1.3)
+"""RMS of the along-curve error in units of ``precision_px`` over some 60 matches: an
+honest 1-sigma gives 1 within the sampling spread of such a count (about +-0.1) and the
+model approximations (+-0.15)."""
+
+
+def _impulse_weights(positions, size):
+    """Spline weights of every pixel of a ``size`` x ``size`` image at ``positions``
+    (n, 2), by scipy's cubic spline interpolation of unit impulses: (n, size * size)."""
+    from scipy import ndimage
+
+    out = np.empty((positions.shape[0], size * size))
+    for k in range(size * size):
+        impulse = np.zeros((size, size))
+        impulse.flat[k] = 1.0
+        out[:, k] = ndimage.map_coordinates(impulse, [positions[:, 1], positions[:, 0]],
+                                            order=3, mode="mirror")  # fmt: skip
+    return out
+
+
+def test_interpolated_noise_variance_and_correlation_match_scipy(rng):
+    from endomeasure.measure.correspondence import (
+        _interpolated_noise_correlation,
+        _spline_noise_variance,
+    )
+
+    size = 36
+    points = rng.uniform(14, 22, (40, 2))
+    weights = _impulse_weights(points, size)
+    variance, gradient = _spline_noise_variance(points)
+    np.testing.assert_allclose(variance, np.sum(weights**2, axis=1), atol=SPLINE_VARIANCE_TOL)
+    h = 1e-4
+    for axis in range(2):
+        step = np.zeros(2)
+        step[axis] = h
+        above = np.sum(_impulse_weights(points + step, size) ** 2, axis=1)
+        below = np.sum(_impulse_weights(points - step, size) ** 2, axis=1)
+        numeric = (above - below) / (2 * h)
+        np.testing.assert_allclose(gradient[:, axis], numeric, atol=1e-4)
+    offsets = np.stack(np.meshgrid(np.arange(-4.0, 5), np.arange(-4.0, 5)), -1).reshape(-1, 2)
+    for warp in (np.eye(2), [[0.5, 0.1], [-0.05, 0.6]], [[1.8, 0.3], [0.2, 1.4]]):
+        positions = 18.3 + offsets @ np.asarray(warp).T
+        w = _impulse_weights(positions, size)
+        correlation = w @ w.T  # of unit white pixel noise at the samples
+        expected = np.mean(correlation.sum(axis=1))
+        got = _interpolated_noise_correlation(positions)
+        assert got == pytest.approx(expected, rel=CORRELATION_TOL)
+
+
+def test_precision_is_an_honest_sigma_on_weak_texture(plane_scene):
+    """Against the simulator's truth: on weak texture the along-curve errors of the
+    accepted matches are ``precision_px`` in size, not twice it."""
+    name, model, surface, _ = plane_scene
+    if name != "raytrace":
+        pytest.skip("one model suffices")
+    rng = np.random.default_rng(5)
+    pixels = _textured_points(model, surface, rng, count=30)
+    _, _, truth, _ = true_matches(model, surface, pixels)
+    z, precision = [], []
+    for _ in range(2):
+        image = render(model, surface, rng, noise_dn=WEAK_NOISE_DN)
+        for m, t in zip(find_matches(model, image, pixels, "left"), truth, strict=True):
+            if m.ok:
+                k = int(np.argmin(np.linalg.norm(m.curve - m.match, axis=1)))
+                tangent = m.curve[min(k + 2, len(m.curve) - 1)] - m.curve[max(k - 2, 0)]
+                along = (m.match - t) @ tangent / np.linalg.norm(tangent)
+                z.append(along / m.precision_px)
+                precision.append(m.precision_px)
+    assert len(z) >= 40
+    assert 0.08 < np.median(precision) < 0.4  # the weak regime this test is about
+    rms = np.sqrt(np.mean(np.square(z)))
+    assert Z_RMS_RANGE[0] < rms < Z_RMS_RANGE[1], rms

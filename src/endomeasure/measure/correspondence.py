@@ -73,6 +73,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -383,7 +384,8 @@ def _bspline3(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a = np.abs(x)
     inner = a < 1.0
     outer = (a >= 1.0) & (a < 2.0)
-    value = np.where(inner, 2.0 / 3.0 - a**2 + a**3 / 2.0, np.where(outer, (2.0 - a) ** 3 / 6.0, 0.0))
+    far = np.where(outer, (2.0 - a) ** 3 / 6.0, 0.0)
+    value = np.where(inner, 2.0 / 3.0 - a**2 + a**3 / 2.0, far)
     slope = np.where(inner, -2.0 * a + 1.5 * a**2, np.where(outer, -0.5 * (2.0 - a) ** 2, 0.0))
     return value, np.sign(x) * slope
 
@@ -405,6 +407,27 @@ def _spline_weights(phase: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return weight, slope
 
 
+_CORRELATION_REACH = 4
+"""Pixels either side whose spline weights enter :func:`_interpolated_noise_correlation`."""
+_SPLINE_TABLE_STEPS = 1024
+"""Sub-pixel phases tabulated by :func:`_spline_table` (linear interpolation between
+them is exact to about 1e-7)."""
+
+
+@functools.cache
+def _spline_table() -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Tables over the phases ``k / S``, ``k = 0..S`` (``S`` = :data:`_SPLINE_TABLE_STEPS`):
+    the spline weights (S + 1, 2R + 1), the 1-D noise variance ``sum w^2`` and its
+    derivative (S + 1,), and the mean variance of the derivative, along any unit
+    direction, of unit white pixel noise interpolated in 2-D (about 2.16 per px^2)."""
+    phase = np.arange(_SPLINE_TABLE_STEPS + 1) / _SPLINE_TABLE_STEPS
+    weight, slope = _spline_weights(phase)
+    variance = np.sum(weight**2, axis=-1)
+    d_variance = 2.0 * np.sum(weight * slope, axis=-1)
+    derivative = float(np.mean(np.sum(slope[:-1] ** 2, axis=-1)) * np.mean(variance[:-1]))
+    return weight, variance, d_variance, derivative
+
+
 def _spline_noise_variance(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Variance of unit white pixel noise after cubic spline interpolation at
     ``positions`` (..., 2), and its gradient in ``(u, v)`` (..., 2).
@@ -412,10 +435,11 @@ def _spline_noise_variance(positions: np.ndarray) -> tuple[np.ndarray, np.ndarra
     It is 1 on the pixel grid and 0.57 midway between four pixels (0.76 per axis): an
     interpolated image is least noisy between pixels.
     """
+    _, table, d_table, _ = _spline_table()
+    grid = np.linspace(0.0, 1.0, _SPLINE_TABLE_STEPS + 1)
     frac = positions - np.floor(positions)
-    weight, slope = _spline_weights(frac)  # (..., 2, 2R+1)
-    per_axis = np.sum(weight**2, axis=-1)  # (..., 2)
-    d_axis = 2.0 * np.sum(weight * slope, axis=-1)
+    per_axis = np.interp(frac, grid, table)
+    d_axis = np.interp(frac, grid, d_table)
     variance = per_axis[..., 0] * per_axis[..., 1]
     gradient = np.stack([d_axis[..., 0] * per_axis[..., 1], per_axis[..., 0] * d_axis[..., 1]], -1)
     return variance, gradient
@@ -425,9 +449,16 @@ def _spline_derivative_noise() -> float:
     """Mean variance of the derivative, along any unit direction, of unit white pixel
     noise interpolated by the cubic spline (averaged over the sub-pixel phase): about
     2.16 per px^2."""
-    phase = (np.arange(64) + 0.5) / 64.0
-    weight, slope = _spline_weights(phase)
-    return float(np.mean(np.sum(slope**2, axis=-1)) * np.mean(np.sum(weight**2, axis=-1)))
+    return _spline_table()[3]
+
+
+def _tabulated_weights(frac: np.ndarray) -> np.ndarray:
+    """Spline weights at phases ``frac`` in [0, 1), (..., 2R + 1), from the table."""
+    table = _spline_table()[0]
+    x = np.asarray(frac) * _SPLINE_TABLE_STEPS
+    k = np.minimum(np.floor(x).astype(np.intp), _SPLINE_TABLE_STEPS - 1)
+    f = (x - k)[..., None]
+    return (1.0 - f) * table[k] + f * table[k + 1]
 
 
 def _inside(positions: np.ndarray, cols: tuple[int, int], height: int) -> np.ndarray:
@@ -654,18 +685,23 @@ def _interpolated_noise_correlation(positions: np.ndarray) -> float:
     variance alone) for samples far apart. It scales the weight of the searched half's
     noise in the match: a smooth signal gradient sees the noise of all correlated
     samples."""
-    cols = []
-    for axis in range(2):
-        x = positions[:, axis]
-        base = np.floor(x)
-        weight, _ = _spline_weights(x - base)  # (n, 2R+1)
-        first = int(base.min()) - _SPLINE_REACH
-        width = int(base.max()) + _SPLINE_REACH - first + 1
-        dense = np.zeros((x.size, width))
-        index = (base - first).astype(np.intp)[:, None] + np.arange(-_SPLINE_REACH, _SPLINE_REACH + 1)
-        dense[np.arange(x.size)[:, None], index] = weight
-        cols.append(dense @ dense.T)
-    return float(np.mean(np.sum(cols[0] * cols[1], axis=1)))
+    # row i of the correlation matrix summed over j is sum_kl w_i(k, l) S(k, l), with
+    # S the sum over all samples of their weights on the pixel grid; the weights beyond
+    # _CORRELATION_REACH pixels are below 0.005 and are left out
+    reach = _CORRELATION_REACH
+    taps = np.arange(-reach, reach + 1)
+    middle = slice(_SPLINE_REACH - reach, _SPLINE_REACH + reach + 1)
+    base = np.floor(positions).astype(np.intp)  # (n, 2)
+    wu = _tabulated_weights(positions[:, 0] - base[:, 0])[:, middle]  # (n, 2r+1)
+    wv = _tabulated_weights(positions[:, 1] - base[:, 1])[:, middle]
+    cu = base[:, 0, None] + taps - (base[:, 0].min() - reach)  # grid columns (n, 2r+1)
+    cv = base[:, 1, None] + taps - (base[:, 1].min() - reach)
+    width = int(cu.max()) + 1
+    flat = (cv[:, :, None] * width + cu[:, None, :]).ravel()  # (n * (2r+1)^2,)
+    weights = (wv[:, :, None] * wu[:, None, :]).ravel()
+    splat = np.bincount(flat, weights=weights)
+    rows = (weights * splat[flat]).reshape(positions.shape[0], -1).sum(axis=1)
+    return float(np.mean(rows))
 
 
 def _match_precision(
