@@ -35,6 +35,10 @@ ACC = ROOT / "docs" / "accuracy.md"
 RHOS = (0.0, 0.3, 0.6, 0.9)
 STD_BAND = 0.25  # issue 8: actual std within +-25 % of the predicted one, per zone and kind
 MIN_IN_BAND = 0.9  # issue 8: >= 90 % of the errors inside the predicted 2-sigma band
+KINDS = ("x-segment", "y-segment", "point-plane", "area")
+PRIMARY = "per board and zone sigma, u and v"
+"""The prediction the issue 8 table shows: sigma equal to the measured detection noise of
+the corners it predicts (each board in each zone, u and v separately)."""
 SEGMENT_TARGET = 0.5  # issue 7: raytrace segment mean error within 0.5 % of the square
 AREA_TARGET = 1.0  # issue 7: raytrace area mean error within 1 %
 PLANE_TARGET = 0.3  # issue 7: point-to-plane |mean| within 0.3 of its per-zone std
@@ -51,6 +55,38 @@ def build_session(data: Path, session: Path) -> dict:
     session.unlink(missing_ok=True)
     detect_samples(data, session, workers=2)
     return run("calibrate", session, "--model", "all", "--json")
+
+
+def with_more_test_frames(data: Path, work: Path, seeds: list[int]) -> Path:
+    """``data`` plus the test set rendered again with other seeds (the same stage positions,
+    fresh lateral offsets, tilts and noise: more frames per position, as a lab would take
+    to shrink the sampling error of its zone statistics), as one simulated set in
+    ``work/data``: the manifest lists every frame, the extra ones renamed ``test_sN_KKK``.
+    """
+    import shutil
+
+    out = work / "data"
+    shutil.rmtree(out, ignore_errors=True)
+    (out / "test").mkdir(parents=True)
+    manifest = load_manifest(data)
+    (out / "calib").symlink_to(data / "calib")
+    items = []
+    for seed in [0, *seeds]:
+        if seed == 0:
+            src, prefix, sim = data, "test", manifest
+        else:
+            src, prefix = work / f"render_s{seed}", f"test_s{seed}"
+            if not (src / "simulation.json").exists():
+                run("simulate", src, "--set", "test", "--seed", seed, "--json")
+            sim = load_manifest(src)
+        for item in sim["sets"]["test"]["images"]:
+            stem = Path(item["image"]).stem.replace("test", prefix, 1)
+            for key, ext in (("image", ".png"), ("truth", ".json")):
+                (out / "test" / f"{stem}{ext}").symlink_to((src / item[key]).resolve())
+            items.append({**item, "image": f"test/{stem}.png", "truth": f"test/{stem}.json"})
+    manifest["sets"]["test"] = {**manifest["sets"]["test"], "images": items}
+    (out / "simulation.json").write_text(json.dumps(manifest))
+    return out
 
 
 def truth_of(data: Path, image: str) -> dict:
@@ -80,7 +116,10 @@ def noise_figures(el: np.ndarray, er: np.ndarray, pairs: np.ndarray) -> dict:
 def detection_noise(session: Path, data: Path, zone_mm: float | None = None) -> dict:
     """Detected minus true corner pixels of the test set: sigma and correlations
     (between a corner's left and right errors, and between neighbouring corners of one
-    half), overall and, with ``zone_mm``, per distance zone of the board."""
+    half), overall and, with ``zone_mm``, per distance zone of the image (``zones``) and per
+    board and zone (``board_zones``, keys ``(board spec, zone start)``): the detection
+    noise depends on the squares' size in pixels, so the two boards differ at one
+    distance."""
     halves = detection_errors(data, session, sets=("test",))
     by_image: dict[str, dict] = {}
     for h in halves:
@@ -114,8 +153,9 @@ def detection_noise(session: Path, data: Path, zone_mm: float | None = None) -> 
                     for half in ("left", "right"):
                         rpairs.append((r[half][k], r[half][at[j]]))
         offset = e["left"].mean(axis=0) - e["right"].mean(axis=0)
-        dist = float(load_truth(data, image)["distance_mm"])
-        keys = [None] + ([np.floor(dist / zone_mm) * zone_mm] if zone_mm else [])
+        truth = load_truth(data, image)
+        zone = float(np.floor(float(truth["distance_mm"]) / zone_mm) * zone_mm) if zone_mm else None
+        keys = [None] + ([zone, (truth["board_spec"], zone)] if zone_mm else [])
         for key in keys:
             groups.setdefault(key, []).append(
                 (e["left"], e["right"], pairs, r["left"], r["right"], rpairs, offset)
@@ -134,7 +174,8 @@ def detection_noise(session: Path, data: Path, zone_mm: float | None = None) -> 
         out[key]["disparity_offset_u"] = float(np.mean(offsets[:, 0]))
         out[key]["disparity_random_std_u"] = float(np.std(rl[:, 0] - rr[:, 0]))
     result = out.pop(None)
-    result["zones"] = dict(sorted(out.items()))
+    result["zones"] = dict(sorted((k, v) for k, v in out.items() if not isinstance(k, tuple)))
+    result["board_zones"] = dict(sorted((k, v) for k, v in out.items() if isinstance(k, tuple)))
     return result
 
 
@@ -160,6 +201,93 @@ def truth_board_test(session: Path, data: Path, zone_mm: float) -> dict:
         bs.left.append(np.asarray(px["left"], dtype=float))
         bs.right.append(np.asarray(px["right"], dtype=float))
     return {n: run_board_test(n, m, list(sets.values()), zone_mm) for n, m in models.items()}
+
+
+def perfect_reference(session: Path, data: Path, groups: dict, zone_mm: float, reps: int) -> dict:
+    """What a perfect model and a perfect noise prediction give on this test set.
+
+    The simulator's *truth* optics measure the test set's *true* corner pixels plus
+    Gaussian noise drawn with each (board, zone) group's measured sigma_u, sigma_v, ``reps``
+    times; the UT predicts with exactly that noise (image noise only: the optics are
+    exact). Whatever such a run misses of the issue 7 and 8 targets is the sampling error
+    of the zone statistics and the estimator's own noise-induced bias, which no model and
+    no prediction can remove. Returns, per zone key, the issue 7 figures averaged over the
+    runs, and per run the zones within +-25 % and with >= 90 % in the band.
+    """
+    from endomeasure.models import model_from_dict
+    from endomeasure.pipeline.measure import BoardSet, run_board_test
+    from endomeasure.pipeline.predict import _zone_rows, board_predictions
+
+    truth_model = model_from_dict(load_manifest(data)["truth_model"])
+    truths = [
+        load_truth(data, Path(i["image"]).stem)
+        for i in load_manifest(data)["sets"]["test"]["images"]
+    ]  # noqa: E501
+    rng = np.random.default_rng(8)
+    preds, figures, counts = {}, {}, []
+    for _ in range(reps):
+        sets: dict[str, BoardSet] = {}
+        for t in truths:
+            tg, px = t["target"], t["corners"]["pixels"]
+            zone = float(np.floor(float(t["distance_mm"]) / zone_mm) * zone_mm)
+            s = np.asarray(groups[(t["board_spec"], zone)]["sigma_uv"])
+            bs = sets.setdefault(
+                t["board_spec"],
+                BoardSet(t["board_spec"], tg["cols"], tg["rows"], tg["square_mm"], [], [], [], []),
+            )
+            bs.images.append(Path(t["image"]).stem)
+            bs.ids.append(np.asarray(t["corners"]["ids"], dtype=np.int64))
+            for half, out in (("left", bs.left), ("right", bs.right)):
+                q = np.asarray(px[half], dtype=float)
+                out.append(q + rng.normal(0.0, 1.0, q.shape) * s)
+        bt = run_board_test("truth", truth_model, list(sets.values()), zone_mm)
+        rows = []
+        for key, nz in groups.items():
+            if key not in preds:  # the prediction at the ideal board: the same every run
+                preds[key] = board_predictions(bt, truth_model, sigma=tuple(nz["sigma_uv"]))
+            p = preds[key]
+            rows += [
+                z for z in _zone_rows(bt, p["bias"], p["std"], p["std_image"], p["std_calibration"], zone_mm)  # noqa: E501
+                if z["board"] == key[0] and abs(z["zone_start"] - key[1]) < 1e-9
+            ]  # fmt: skip
+        _, ok_std, ok_band = zone_verdicts(rows)
+        counts.append((len(rows), ok_std, ok_band))
+        for z in rows:
+            f = figures.setdefault((z["board"], z["kind"], z["zone_start"]), [])
+            f.append((z["actual_mean"], z["actual_std"], z["true"]))
+    means = {
+        k: {"mean": float(np.mean([v[0] for v in f])), "std": float(np.mean([v[1] for v in f])),
+            "true": f[0][2]}
+        for k, f in figures.items()
+    }  # fmt: skip
+    met = {}
+    for board, kind, z0 in figures:
+        if kind != "x-segment":
+            continue
+        series = {k: figures.get((board, k, z0), []) for k in KINDS}
+        runs = [
+            issue7_figures({k: v[r] for k, v in series.items() if len(v) == reps})
+            for r in range(reps)
+        ]
+        met[(board, z0)] = [r for r in runs if r is not None]
+    return {"reps": reps, "counts": counts, "cells": means, "issue7": met}
+
+
+def issue7_figures(cells: dict) -> tuple[float, float, float, float, bool] | None:
+    """x-, y-segment and area mean error in % of the true value, point-plane mean / std,
+    and whether all four targets are met; ``cells`` maps kind -> (mean, std, true)."""
+    if any(k not in cells for k in KINDS):
+        return None
+    x, y, area = (100 * cells[k][0] / cells[k][2] for k in ("x-segment", "y-segment", "area"))
+    mean, std, _ = cells["point-plane"]
+    pp = mean / std if std else float("nan")
+    met = (
+        abs(x) <= SEGMENT_TARGET
+        and abs(y) <= SEGMENT_TARGET
+        and abs(area) <= AREA_TARGET
+        and abs(pp) <= PLANE_TARGET
+    )
+    return x, y, area, pp, met
 
 
 def fmt(v, digits=4, sign=True):
@@ -190,25 +318,41 @@ def zone_verdicts(zones: list[dict]) -> tuple[int, int, int]:
     return len(zones), ok_std, ok_band
 
 
-def per_zone_sigma_prediction(
-    session: Path, noise: dict, zone_mm: float, rho: bool, random: bool = False
+def group_sigma_prediction(
+    session: Path,
+    groups: dict,
+    zone_mm: float,
+    *,
+    rho: bool = False,
+    random: bool = False,
+    per_axis: bool = False,
 ) -> dict:
-    """predict-error with each zone's own measured sigma (and correlations when ``rho``;
-    of the random part of the detection error when ``random``): one run per noise zone,
-    each contributing the rows of its zone."""
+    """predict-error with each noise group's own measured sigma: one run per group, each
+    contributing the rows of its zone (and board, for ``(board, zone)`` keys).
+
+    ``rho`` adds the group's measured correlations (of u, negative taken as 0),
+    ``random`` uses the random part of the detection error (each image's common shift
+    per half removed), ``per_axis`` passes sigma_u and sigma_v (``--sigma U,V``).
+    """
     zones, band_num, band_den = [], 0.0, 0
-    for z0, nz in noise["zones"].items():
-        extra = []
+    for key, nz in groups.items():
+        board, z0 = key if isinstance(key, tuple) else (None, key)
         if random:
             nz = nz["random"]
+        extra = []
         if rho:
             extra = ["--rho-images", f"{max(nz['rho_images'][0], 0.0):.3f}",
                      "--rho-points", f"{max(nz['rho_points'][0], 0.0):.3f}"]  # fmt: skip
-        p = predict(session, nz["sigma"], zone_mm, *extra)
-        rows = [z for z in p["zones"] if abs(z["zone_start"] - z0) < 1e-9]
+        sigma = ",".join(f"{v:.5f}" for v in nz["sigma_uv"]) if per_axis else nz["sigma"]
+        p = predict(session, sigma, zone_mm, *extra)
+        rows = [
+            z for z in p["zones"]
+            if abs(z["zone_start"] - z0) < 1e-9 and board in (None, z["board"])
+        ]  # fmt: skip
         zones += rows
         band_num += sum(z["within_band"] * z["n"] for z in rows)
         band_den += sum(z["n"] for z in rows)
+    zones.sort(key=lambda z: (z["board"], KINDS.index(z["kind"]), z["zone_start"]))
     return {"zones": zones, "within_band": band_num / max(band_den, 1)}
 
 
@@ -220,12 +364,25 @@ def main() -> None:
         "--reuse", action="store_true", help="keep the session of an earlier run in --work"
     )
     ap.add_argument("--zone-mm", type=float, default=5.0)
+    ap.add_argument(
+        "--test-seeds",
+        default="",
+        help="comma-separated extra seeds of the test set (more frames per position)",
+    )
+    ap.add_argument(
+        "--reps", type=int, default=20, help="noise draws of the perfect-model reference"
+    )
     ap.add_argument("--no-write", action="store_true", help="print, do not update the doc")
     args = ap.parse_args()
     t0 = time.perf_counter()
     data = Path(args.data).resolve()
     work = Path(args.work or tempfile.mkdtemp(prefix="endomeasure-acc-"))
     work.mkdir(parents=True, exist_ok=True)
+    seeds = [int(v) for v in args.test_seeds.split(",") if v.strip()]
+    command = data.name if data.parent == ROOT else str(data)
+    command += f" --test-seeds {','.join(map(str, seeds))}" if seeds else ""
+    if seeds:
+        data = with_more_test_frames(data, work, seeds)
     session = work / "accuracy.h5"
     cal_file = work / "calibration.json"
     if args.reuse and session.exists() and cal_file.exists():
@@ -240,6 +397,7 @@ def main() -> None:
     )  # fmt: skip
     noise = detection_noise(session, data, zone_mm)
     truth = truth_board_test(session, data, zone_mm)
+    ref = perfect_reference(session, data, noise["board_zones"], zone_mm, reps=args.reps)
     sigma = noise["sigma"]
     rho_i = max(noise["rho_images"][0], 0.0)
     rho_p = max(noise["rho_points"][0], 0.0)
@@ -253,16 +411,17 @@ def main() -> None:
     preds[measured_rho] = predict(
         session, sigma, zone_mm, "--rho-images", f"{rho_i:.3f}", "--rho-points", f"{rho_p:.3f}"
     )
-    preds["per-zone sigma"] = per_zone_sigma_prediction(session, noise, zone_mm, rho=False)
-    preds["per-zone sigma and correlations"] = per_zone_sigma_prediction(
-        session, noise, zone_mm, rho=True
+    zones_, boards_ = noise["zones"], noise["board_zones"]
+    preds["per-zone sigma"] = group_sigma_prediction(session, zones_, zone_mm)
+    preds["per-zone sigma and correlations"] = group_sigma_prediction(
+        session, zones_, zone_mm, rho=True
     )
-    preds["per-zone random sigma"] = per_zone_sigma_prediction(
-        session, noise, zone_mm, rho=False, random=True
+    preds["per-zone random sigma"] = group_sigma_prediction(session, zones_, zone_mm, random=True)
+    preds["per-zone random sigma and correlations"] = group_sigma_prediction(
+        session, zones_, zone_mm, rho=True, random=True
     )
-    preds["per-zone random sigma and correlations"] = per_zone_sigma_prediction(
-        session, noise, zone_mm, rho=True, random=True
-    )
+    preds["per board and zone sigma"] = group_sigma_prediction(session, boards_, zone_mm)
+    preds[PRIMARY] = group_sigma_prediction(session, boards_, zone_mm, per_axis=True)
 
     sim = load_manifest(data)
     n_test = len(sim["sets"]["test"]["images"])
@@ -273,12 +432,13 @@ def main() -> None:
     lines = [
         "## Measurement (board test) and error prediction",
         "",
-        f"Reproduce: `python bench/accuracy_report.py {data.name if data.parent == ROOT else data}`"
+        f"Reproduce: `python bench/accuracy_report.py {command}`"
         " (builds a session with `endomeasure detect` / `calibrate`, then runs `endomeasure "
         "measure --board-test --model all` and `endomeasure predict-error --board-test` at the "
         f"measured detection noise; {time.perf_counter() - t0:.0f} s here, {machine()}). Data: "
-        f"preset `{sim['preset']['name']}`, seed {sim['seed']}, {n_test} test images "
-        "(board perpendicular to the axis, 1 mm steps). Zones of "
+        f"preset `{sim['preset']['name']}`, seed {sim['seed']} (calibration set"
+        + (f"; test set seeds 0, {', '.join(map(str, seeds))}: " if seeds else " and test set: ")
+        + f"{n_test} test images, board perpendicular to the axis, 1 mm steps). Zones of "
         f"{zone_mm:g} mm along z; error = measured - true; relative = mean / true value.",
         "",
         "Calibration: "
@@ -327,36 +487,34 @@ def main() -> None:
         "### Issue 7 targets: raytrace, detected corners, every zone",
         "",
         f"x- and y-segments: |mean error| <= {SEGMENT_TARGET:g} % of the square; areas: <= "
-        f"{AREA_TARGET:g} %; point-to-plane: |mean| <= {PLANE_TARGET:g} x its per-zone std.",
+        f"{AREA_TARGET:g} %; point-to-plane: |mean| <= {PLANE_TARGET:g} x its per-zone std. "
+        f"'Exact optics' is the reference described under 'A perfect model on this test set' "
+        f"below ({ref['reps']} noise draws on the true pixels with the simulator's own optics): "
+        "its mean x-segment error, and the share of draws in which it meets all four targets "
+        "in that zone.",
         "",
-        "| board | zone mm | x-segment % | y-segment % | area % | point-plane mean/std | met |",
-        "|---|---|---:|---:|---:|---:|---|",
+        "| board | zone mm | n | x-segment % | y-segment % | area % | point-plane mean/std | met "
+        "| exact optics: x-segment % | exact optics: draws meeting all four |",
+        "|---|---|---:|---:|---:|---:|---:|---|---:|---:|",
     ]
     ray = by_model["raytrace"]
     zones7 = sorted({(k[0], k[2]) for k in ray})
     n_met = 0
     for board, z0 in zones7:
-        r = {
-            kind: ray.get((board, kind, z0))
-            for kind in ("x-segment", "y-segment", "area", "point-plane")
-        }
+        r = {kind: ray.get((board, kind, z0)) for kind in KINDS}
         if any(v is None for v in r.values()):
             continue
-        seg = [r[k]["relative_mean_percent"] for k in ("x-segment", "y-segment")]
-        area = r["area"]["relative_mean_percent"]
-        pp = r["point-plane"]
-        ratio = pp["mean_error"] / pp["std_error"] if pp["std_error"] else float("nan")
-        few = min(v["n"] for v in r.values()) < 10
-        met = (
-            all(abs(v) <= SEGMENT_TARGET for v in seg)
-            and abs(area) <= AREA_TARGET
-            and abs(ratio) <= PLANE_TARGET
+        x, y, area, ratio, met = issue7_figures(
+            {k: (v["mean_error"], v["std_error"], v["true"]) for k, v in r.items()}
         )
         n_met += met
+        runs = ref["issue7"].get((board, z0), [])
+        exact_x = f"{np.mean([v[0] for v in runs]):+.2f}" if runs else "-"
+        exact_met = f"{100 * np.mean([v[4] for v in runs]):.0f} %" if runs else "-"
         lines.append(
-            f"| {board_name(board)} | {z0:g}-{z0 + zone_mm:g} | {seg[0]:+.2f} | {seg[1]:+.2f} | "
-            f"{area:+.2f} | {ratio:+.2f} | {'yes' if met else '**no**'}"
-            f"{' (n < 10)' if few else ''} |"
+            f"| {board_name(board)} | {z0:g}-{z0 + zone_mm:g} | {min(v['n'] for v in r.values())} "
+            f"| {x:+.2f} | {y:+.2f} | {area:+.2f} | {ratio:+.2f} | {'yes' if met else '**no**'} "
+            f"| {exact_x} | {exact_met} |"
         )
     lines += ["", f"Zones meeting all four targets: {n_met} of {len(zones7)}."]
 
@@ -407,18 +565,49 @@ def main() -> None:
         )
 
     # ----- issue 8: predicted vs actual
-    p = preds["iid"]
+    p = preds[PRIMARY]
     nz, ok_std, ok_band = zone_verdicts(p["zones"])
+    counts = np.array(ref["counts"])
     lines += [
         "",
-        f"### Predicted vs actual (raytrace, UT, sigma {sigma:.4f} px, rho 0, with the "
-        "calibration covariance)",
+        "### Predicted vs actual (raytrace, UT, the measured detection noise of each board and "
+        "zone, u and v, rho 0, with the calibration covariance)",
+        "",
+        "The detection noise depends on the squares' size in pixels (the point-symmetry "
+        "window is a fraction of a square) and differs between u and v, so the sigma of a "
+        "prediction is the measured noise of the corners it predicts: each board in each "
+        "zone, u and v separately (`predict-error --sigma U,V`):",
+        "",
+        "| board | zone mm | corners | sigma u px | sigma v px | random: sigma u | sigma v |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for (board, z0), nz_ in noise["board_zones"].items():
+        lines.append(
+            f"| {board_name(board)} | {z0:g}-{z0 + zone_mm:g} | {nz_['n']} | "
+            f"{nz_['sigma_uv'][0]:.4f} | {nz_['sigma_uv'][1]:.4f} | "
+            f"{nz_['random']['sigma_uv'][0]:.4f} | {nz_['random']['sigma_uv'][1]:.4f} |"
+        )
+    lines += [
         "",
         f"Errors inside their predicted 2-sigma band: {100 * p['within_band']:.1f} % "
-        f"(image noise only: {100 * preds['iid, image noise only']['within_band']:.1f} %). "
-        f"Zones with actual/predicted std within +-{100 * STD_BAND:.0f} %: {ok_std} of {nz}; "
-        f"with >= {100 * MIN_IN_BAND:.0f} % of their errors in the band: {ok_band} of {nz}. "
+        f"(one sigma {sigma:.4f} px for everything: "
+        f"{100 * preds['iid']['within_band']:.1f} %). "
+        f"Zones with actual/predicted std within +-{100 * STD_BAND:.0f} %: **{ok_std} of {nz}** "
+        f"(one sigma: {zone_verdicts(preds['iid']['zones'])[1]} of {nz}); with >= "
+        f"{100 * MIN_IN_BAND:.0f} % of their errors in the band: {ok_band} of {nz}. "
         "Predictions are made at the pixels of the ideal board at its estimated pose.",
+        "",
+        f"**A perfect model on this test set.** The simulator's own optics on the true corner "
+        f"pixels plus Gaussian noise of exactly the measured sigma_u, sigma_v of each board and "
+        f"zone, predicted by the UT with exactly that noise, {ref['reps']} noise draws: zones "
+        f"within +-{100 * STD_BAND:.0f} % median {np.median(counts[:, 1]):.0f} of "
+        f"{counts[0, 0]} (range {counts[:, 1].min()}-{counts[:, 1].max()}; all of them in "
+        f"{int(np.sum(counts[:, 1] == counts[:, 0]))} of {ref['reps']} draws), zones with >= "
+        f"{100 * MIN_IN_BAND:.0f} % in the band median {np.median(counts[:, 2]):.0f} (range "
+        f"{counts[:, 2].min()}-{counts[:, 2].max()}). The spread of a zone's sample std (its "
+        "errors share corners, so they are fewer independent values than measurements) is "
+        "what an exact prediction still misses by; 'every zone within +-25 %' is not reachable "
+        "on this test set for that reason alone.",
         "",
         "| board | kind | zone mm | n | actual mean | predicted mean | actual std | "
         "predicted std | actual / predicted std | in 2-sigma band |",
@@ -441,19 +630,21 @@ def main() -> None:
         "",
         "### Effect of the noise assumptions on the prediction (raytrace)",
         "",
-        "Mean over zones of the predicted std relative to rho = 0 per kind, the median ratio "
-        "actual / predicted std, zones within +-25 %, and errors in their 2-sigma band. "
-        "'per-zone sigma' uses each distance zone's own measured detection noise (table "
-        "above), 'and correlations' also its measured rho_images and rho_points (of u, the "
-        "coordinate along the baseline; negative values taken as 0).",
+        "Mean over zones of the predicted std relative to 'iid' (one sigma for everything, "
+        "rho = 0) per kind, the median ratio actual / predicted std, zones within +-25 %, and "
+        "errors in their 2-sigma band. 'per-zone sigma' uses each distance zone's own "
+        "measured detection noise (first table), 'and correlations' also its measured "
+        "rho_images and rho_points (of u, the coordinate along the baseline; negative values "
+        "taken as 0); 'per board and zone' the noise of each board in each zone (the table "
+        "above), 'u and v' its two coordinates separately (the prediction shown above).",
         "",
         "| assumption | x-segment | y-segment | point-plane | area | median actual/predicted |"
         " zones within +-25 % | in 2-sigma band |",
         "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     base = {
-        k: {zone_key(z): z["predicted_std"] for z in p["zones"] if z["kind"] == k}
-        for k in ("x-segment", "y-segment", "point-plane", "area")
+        k: {zone_key(z): z["predicted_std"] for z in preds["iid"]["zones"] if z["kind"] == k}
+        for k in KINDS
     }
     for key, q in preds.items():
         rel = []
@@ -478,8 +669,12 @@ def main() -> None:
     (work / "report.json").write_text(
         json.dumps(
             {
-                "noise": {k: v for k, v in noise.items() if k != "zones"},
+                "noise": {k: v for k, v in noise.items() if k not in ("zones", "board_zones")},
                 "noise_zones": {str(k): v for k, v in noise["zones"].items()},
+                "noise_board_zones": {
+                    f"{b} {z:g}": v for (b, z), v in noise["board_zones"].items()
+                },
+                "perfect_reference_counts": ref["counts"],
                 "predictions": preds,
                 "board_test": summary,
             },
