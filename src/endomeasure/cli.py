@@ -160,6 +160,16 @@ def _sigma_text(sigma: Any) -> str:
     return f"u {sigma[0]:.4f}, v {sigma[1]:.4f} px"
 
 
+SigmaOption = Annotated[
+    str | None,
+    typer.Option(
+        "--sigma",
+        metavar="PX|U,V",
+        help="Image noise per coordinate, px, or separately for u and v "
+        "(default: from the calibration residuals).",
+    ),
+]
+
 JsonOption = Annotated[
     bool, typer.Option("--json", help="Print one JSON document on stdout instead of tables.")
 ]
@@ -548,15 +558,7 @@ def measure(
             help="Warn when the predicted 95% error exceeds this percentage of the value.",
         ),
     ] = 5.0,
-    sigma: Annotated[
-        str | None,
-        typer.Option(
-            "--sigma",
-            metavar="PX|U,V",
-            help="Image noise per coordinate, px, or separately for u and v "
-            "(default: from the calibration residuals).",
-        ),
-    ] = None,
+    sigma: SigmaOption = None,
     board_test: Annotated[
         bool,
         typer.Option("--board-test", help="Measure every test image of a known board instead."),
@@ -782,15 +784,7 @@ def predict_error(
         ),
     ] = None,
     model: Annotated[str, typer.Option("--model", help="Calibrated model.")] = "raytrace",
-    sigma: Annotated[
-        str | None,
-        typer.Option(
-            "--sigma",
-            metavar="PX|U,V",
-            help="Image noise per coordinate, px, or separately for u and v "
-            "(default: from the calibration residuals).",
-        ),
-    ] = None,
+    sigma: SigmaOption = None,
     rho_images: Annotated[
         float, typer.Option("--rho-images", help="Correlation of a point's left/right errors.")
     ] = 0.0,
