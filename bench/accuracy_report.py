@@ -36,7 +36,10 @@ RHOS = (0.0, 0.3, 0.6, 0.9)
 STD_BAND = 0.25  # issue 8: actual std within +-25 % of the predicted one, per zone and kind
 MIN_IN_BAND = 0.9  # issue 8: >= 90 % of the errors inside the predicted 2-sigma band
 KINDS = ("x-segment", "y-segment", "point-plane", "area")
-PRIMARY = "per board and zone sigma, u and v"
+PRIMARY = "per board and zone sigma, u and v, and correlations"
+RHO_POINTS_FLOOR = -0.3
+"""Lowest rho_points passed on: an equicorrelation of n points needs rho >= -1/(n-1), and
+the board test's measurements have up to four points."""
 """The prediction the issue 8 table shows: sigma equal to the measured detection noise of
 the corners it predicts (each board in each zone, u and v separately)."""
 SEGMENT_TARGET = 0.5  # issue 7: raytrace segment mean error within 0.5 % of the square
@@ -330,7 +333,8 @@ def group_sigma_prediction(
     """predict-error with each noise group's own measured sigma: one run per group, each
     contributing the rows of its zone (and board, for ``(board, zone)`` keys).
 
-    ``rho`` adds the group's measured correlations (of u, negative taken as 0),
+    ``rho`` adds the group's measured correlations (of u; negative taken as 0, or with
+    ``per_axis`` kept down to :data:`RHO_POINTS_FLOOR`),
     ``random`` uses the random part of the detection error (each image's common shift
     per half removed), ``per_axis`` passes sigma_u and sigma_v (``--sigma U,V``).
     """
@@ -341,8 +345,11 @@ def group_sigma_prediction(
             nz = nz["random"]
         extra = []
         if rho:
-            extra = ["--rho-images", f"{max(nz['rho_images'][0], 0.0):.3f}",
-                     "--rho-points", f"{max(nz['rho_points'][0], 0.0):.3f}"]  # fmt: skip
+            # negative correlations only where the fewest-point kind allows them (a square's
+            # four corners: rho_points >= -1/3); clamped at 0 without per_axis (as before)
+            low = RHO_POINTS_FLOOR if per_axis else 0.0
+            extra = ["--rho-images", f"{max(nz['rho_images'][0], -1.0 if per_axis else 0.0):.3f}",
+                     "--rho-points", f"{max(nz['rho_points'][0], low):.3f}"]  # fmt: skip
         sigma = ",".join(f"{v:.5f}" for v in nz["sigma_uv"]) if per_axis else nz["sigma"]
         p = predict(session, sigma, zone_mm, *extra)
         rows = [
@@ -421,7 +428,10 @@ def main() -> None:
         session, zones_, zone_mm, rho=True, random=True
     )
     preds["per board and zone sigma"] = group_sigma_prediction(session, boards_, zone_mm)
-    preds[PRIMARY] = group_sigma_prediction(session, boards_, zone_mm, per_axis=True)
+    preds["per board and zone sigma, u and v"] = group_sigma_prediction(
+        session, boards_, zone_mm, per_axis=True
+    )
+    preds[PRIMARY] = group_sigma_prediction(session, boards_, zone_mm, per_axis=True, rho=True)
 
     sim = load_manifest(data)
     n_test = len(sim["sets"]["test"]["images"])
@@ -571,20 +581,25 @@ def main() -> None:
     lines += [
         "",
         "### Predicted vs actual (raytrace, UT, the measured detection noise of each board and "
-        "zone, u and v, rho 0, with the calibration covariance)",
+        "zone: sigma of u and v, correlations; with the calibration covariance)",
         "",
         "The detection noise depends on the squares' size in pixels (the point-symmetry "
         "window is a fraction of a square) and differs between u and v, so the sigma of a "
         "prediction is the measured noise of the corners it predicts: each board in each "
-        "zone, u and v separately (`predict-error --sigma U,V`):",
+        "zone, u and v separately (`predict-error --sigma U,V`), with that group's measured "
+        "correlations of u between a corner's two halves (`--rho-images`) and between "
+        "neighbouring corners (`--rho-points`, an equicorrelation; kept down to "
+        f"{RHO_POINTS_FLOOR:g}):",
         "",
-        "| board | zone mm | corners | sigma u px | sigma v px | random: sigma u | sigma v |",
-        "|---|---|---:|---:|---:|---:|---:|",
+        "| board | zone mm | corners | sigma u px | sigma v px | rho_images u | rho_points u "
+        "| random: sigma u | sigma v |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for (board, z0), nz_ in noise["board_zones"].items():
         lines.append(
             f"| {board_name(board)} | {z0:g}-{z0 + zone_mm:g} | {nz_['n']} | "
             f"{nz_['sigma_uv'][0]:.4f} | {nz_['sigma_uv'][1]:.4f} | "
+            f"{nz_['rho_images'][0]:+.2f} | {nz_['rho_points'][0]:+.2f} | "
             f"{nz_['random']['sigma_uv'][0]:.4f} | {nz_['random']['sigma_uv'][1]:.4f} |"
         )
     lines += [
@@ -636,7 +651,8 @@ def main() -> None:
         "measured detection noise (first table), 'and correlations' also its measured "
         "rho_images and rho_points (of u, the coordinate along the baseline; negative values "
         "taken as 0); 'per board and zone' the noise of each board in each zone (the table "
-        "above), 'u and v' its two coordinates separately (the prediction shown above).",
+        "above), 'u and v' its two coordinates separately, 'and correlations' with its "
+        "measured correlations (the prediction shown above).",
         "",
         "| assumption | x-segment | y-segment | point-plane | area | median actual/predicted |"
         " zones within +-25 % | in 2-sigma band |",
