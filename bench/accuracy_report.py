@@ -206,7 +206,7 @@ def truth_board_test(session: Path, data: Path, zone_mm: float) -> dict:
     return {n: run_board_test(n, m, list(sets.values()), zone_mm) for n, m in models.items()}
 
 
-def perfect_reference(session: Path, data: Path, groups: dict, zone_mm: float, reps: int) -> dict:
+def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int) -> dict:
     """What a perfect model and a perfect noise prediction give on this test set.
 
     The simulator's *truth* optics measure the test set's *true* corner pixels plus
@@ -214,8 +214,8 @@ def perfect_reference(session: Path, data: Path, groups: dict, zone_mm: float, r
     times; the UT predicts with exactly that noise (image noise only: the optics are
     exact). Whatever such a run misses of the issue 7 and 8 targets is the sampling error
     of the zone statistics and the estimator's own noise-induced bias, which no model and
-    no prediction can remove. Returns, per zone key, the issue 7 figures averaged over the
-    runs, and per run the zones within +-25 % and with >= 90 % in the band.
+    no prediction can remove. Returns, per (board, zone), the issue 7 figures of every
+    run, and per run the zones, those within +-25 % and those with >= 90 % in the band.
     """
     from endomeasure.models import model_from_dict
     from endomeasure.pipeline.measure import BoardSet, run_board_test
@@ -225,7 +225,7 @@ def perfect_reference(session: Path, data: Path, groups: dict, zone_mm: float, r
     truths = [
         load_truth(data, Path(i["image"]).stem)
         for i in load_manifest(data)["sets"]["test"]["images"]
-    ]  # noqa: E501
+    ]
     rng = np.random.default_rng(8)
     preds, figures, counts = {}, {}, []
     for _ in range(reps):
@@ -249,20 +249,17 @@ def perfect_reference(session: Path, data: Path, groups: dict, zone_mm: float, r
             if key not in preds:  # the prediction at the ideal board: the same every run
                 preds[key] = board_predictions(bt, truth_model, sigma=tuple(nz["sigma_uv"]))
             p = preds[key]
+            zones = _zone_rows(
+                bt, p["bias"], p["std"], p["std_image"], p["std_calibration"], zone_mm
+            )
             rows += [
-                z for z in _zone_rows(bt, p["bias"], p["std"], p["std_image"], p["std_calibration"], zone_mm)  # noqa: E501
-                if z["board"] == key[0] and abs(z["zone_start"] - key[1]) < 1e-9
-            ]  # fmt: skip
+                z for z in zones if z["board"] == key[0] and abs(z["zone_start"] - key[1]) < 1e-9
+            ]
         _, ok_std, ok_band = zone_verdicts(rows)
         counts.append((len(rows), ok_std, ok_band))
         for z in rows:
             f = figures.setdefault((z["board"], z["kind"], z["zone_start"]), [])
             f.append((z["actual_mean"], z["actual_std"], z["true"]))
-    means = {
-        k: {"mean": float(np.mean([v[0] for v in f])), "std": float(np.mean([v[1] for v in f])),
-            "true": f[0][2]}
-        for k, f in figures.items()
-    }  # fmt: skip
     met = {}
     for board, kind, z0 in figures:
         if kind != "x-segment":
@@ -273,7 +270,7 @@ def perfect_reference(session: Path, data: Path, groups: dict, zone_mm: float, r
             for r in range(reps)
         ]
         met[(board, z0)] = [r for r in runs if r is not None]
-    return {"reps": reps, "counts": counts, "cells": means, "issue7": met}
+    return {"reps": reps, "counts": counts, "issue7": met}
 
 
 def issue7_figures(cells: dict) -> tuple[float, float, float, float, bool] | None:
@@ -404,7 +401,7 @@ def main() -> None:
     )  # fmt: skip
     noise = detection_noise(session, data, zone_mm)
     truth = truth_board_test(session, data, zone_mm)
-    ref = perfect_reference(session, data, noise["board_zones"], zone_mm, reps=args.reps)
+    ref = perfect_reference(data, noise["board_zones"], zone_mm, reps=args.reps)
     sigma = noise["sigma"]
     rho_i = max(noise["rho_images"][0], 0.0)
     rho_p = max(noise["rho_points"][0], 0.0)
