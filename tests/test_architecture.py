@@ -2,8 +2,11 @@
 
 Direction of imports (STYLE.md)::
 
-    cli -> pipeline -> {io, features, simulate, measure, solvers} -> models -> geometry
-        -> conventions, errors
+    cli -> pipeline -> {io, features, simulate, measure, solvers} -> models
+        -> {geometry, interpolation} -> conventions, errors
+
+(``interpolation``: the cubic B-spline image interpolant that the corner refinement in
+features and the correspondence search in measure share, numeric like geometry.)
 
 A module may import from its own package, from any lower layer, and from the base
 (``endomeasure``, ``conventions``, ``errors``). Imports between the middle-layer peers
@@ -26,6 +29,7 @@ LAYERS = {
     "conventions": 0,
     "errors": 0,
     "geometry": 1,
+    "interpolation": 1,
     "models": 2,
     "io": 3,
     "features": 3,

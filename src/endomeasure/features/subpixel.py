@@ -41,6 +41,8 @@ import dataclasses
 
 import numpy as np
 
+from endomeasure.interpolation import bspline_weights, spline_coefficients, spline_sample
+
 __all__ = [
     "SYMMETRY_SIGMA_SQUARES",
     "SubpixelResult",
@@ -82,9 +84,6 @@ MIN_WINDOW_PAIRS = 8
 # Corners either side of a corner (per grid axis) whose detected pixels give its local
 # quadratic grid map (the curvature of the grid lines).
 CURVATURE_RADIUS = 2
-# Spline coefficients are computed on the grid's bounding box plus this margin; the
-# B-spline prefilter's boundary effect decays as 0.268^d, below 1e-5 at 9 px.
-PREFILTER_MARGIN_PX = 9
 
 
 @dataclasses.dataclass(frozen=True)
@@ -183,18 +182,6 @@ def local_quadratic(
     return steps, curvature
 
 
-def _bspline_weights(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cubic B-spline weights (and d/dt) of the taps -1, 0, 1, 2 at fraction t, (n, 4)."""
-    weights = np.stack(
-        [(1 - t) ** 3, 3 * t**3 - 6 * t**2 + 4, -3 * t**3 + 3 * t**2 + 3 * t + 1, t**3], axis=-1
-    )
-    slopes = np.stack(
-        [-3 * (1 - t) ** 2, 9 * t**2 - 12 * t, -9 * t**2 + 6 * t + 3, 3 * t**2], axis=-1
-    )
-    # float32 like the spline coefficients: the window sums are the costly part
-    return (weights / 6.0).astype(np.float32), (slopes / 6.0).astype(np.float32)
-
-
 @dataclasses.dataclass(frozen=True)
 class _Window:
     """Offsets and per-corner weights of the compared half-window."""
@@ -228,50 +215,6 @@ def _window(steps: np.ndarray, sigma_squares: float) -> _Window:
     return _Window(halfsize, keep, offsets[keep], weights[:, keep])
 
 
-def _spline_coefficients(
-    image: np.ndarray, points: np.ndarray, halfsize: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Cubic B-spline coefficients of the part of the image around the points.
-
-    Returns the coefficients and the (u, v) of their first sample in image pixels.
-    """
-    from scipy.ndimage import spline_filter
-
-    height, width = image.shape
-    pad = halfsize + 3 + PREFILTER_MARGIN_PX
-    lo = np.floor(np.nanmin(points, axis=0)).astype(int) - pad
-    hi = np.ceil(np.nanmax(points, axis=0)).astype(int) + pad + 1
-    lo = np.maximum(lo, 0)
-    hi = np.minimum(hi, [width, height])
-    box = np.asarray(image[lo[1] : hi[1], lo[0] : hi[0]], dtype=np.float64)
-    return spline_filter(box, order=3, mode="mirror").astype(np.float32), lo
-
-
-def _sample(
-    coeffs: np.ndarray, origin: np.ndarray, points: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cubic B-spline value and gradient at arbitrary points, shape (...,) each.
-
-    ``points`` (..., 2) in image pixels; ``coeffs`` from :func:`_spline_coefficients`.
-    """
-    box_h, box_w = coeffs.shape
-    local = points - origin
-    base = np.floor(local).astype(int)
-    frac = local - base
-    taps = np.arange(-1, 3)
-    rows_ = np.clip(base[..., 1, None] + taps, 0, box_h - 1)
-    cols_ = np.clip(base[..., 0, None] + taps, 0, box_w - 1)
-    patch = coeffs[rows_[..., :, None], cols_[..., None, :]].astype(np.float64)  # (..., 4, 4)
-    wx, dwx = (a.astype(np.float64) for a in _bspline_weights(frac[..., 0]))
-    wy, dwy = (a.astype(np.float64) for a in _bspline_weights(frac[..., 1]))
-    along_x = np.einsum("...ij,...j->...i", patch, wx)
-    slope_x = np.einsum("...ij,...j->...i", patch, dwx)
-    values = np.einsum("...i,...i->...", along_x, wy)
-    grad_v = np.einsum("...i,...i->...", along_x, dwy)
-    grad_u = np.einsum("...i,...i->...", slope_x, wy)
-    return values, grad_u, grad_v
-
-
 def _symmetric_samples(
     coeffs: np.ndarray,
     origin: np.ndarray,
@@ -295,8 +238,8 @@ def _symmetric_samples(
     patch = coeffs[
         np.clip(rows_, 0, box_h - 1)[:, :, None], np.clip(cols_, 0, box_w - 1)[:, None, :]
     ]
-    wx, dwx = _bspline_weights(frac[:, 0])
-    wy, dwy = _bspline_weights(frac[:, 1])
+    wx, dwx = bspline_weights(frac[:, 0])
+    wy, dwy = bspline_weights(frac[:, 1])
     along_x = sum(wx[:, j, None, None] * patch[:, :, j : j + size] for j in range(4))
     slope_x = sum(dwx[:, j, None, None] * patch[:, :, j : j + size] for j in range(4))
     values = sum(wy[:, j, None, None] * along_x[:, j : j + size] for j in range(4))
@@ -388,7 +331,7 @@ def symmetric_corners(
         )
         shift = np.einsum("nij,nmj->nmi", curvature, quad)  # (n, M, 2) px
     halfsize, size = window.halfsize, 2 * window.halfsize + 1
-    coeffs, origin = _spline_coefficients(gray, c, halfsize)
+    coeffs, origin = spline_coefficients(gray, c, halfsize)
     box_h, box_w = coeffs.shape
     taps = np.arange(-halfsize - 1, halfsize + 3)  # interpolation support of the box
     mirror = size * size - 1 - window.keep  # flat index of -h for h at keep
@@ -409,8 +352,8 @@ def symmetric_corners(
     for _ in range(SYMMETRY_MAX_ITERATIONS):
         if shift is not None:
             centre = c[:, None] + shift
-            plus, gu_p, gv_p = _sample(coeffs, origin, centre + offsets)
-            minus, gu_m, gv_m = _sample(coeffs, origin, centre - offsets)
+            plus, gu_p, gv_p = spline_sample(coeffs, origin, centre + offsets)
+            minus, gu_m, gv_m = spline_sample(coeffs, origin, centre - offsets)
         else:
             plus, minus, gu_p, gu_m, gv_p, gv_m = _symmetric_samples(
                 coeffs, origin, c, taps, window, mirror

@@ -103,6 +103,7 @@ import numpy as np
 from endomeasure.conventions import Half, Status, in_half
 from endomeasure.errors import BadInputError
 from endomeasure.geometry.rays import common_perpendicular
+from endomeasure.interpolation import spline_coefficients, spline_sample
 from endomeasure.measure.epipolar import SPACING_PX, EpipolarCurve, epipolar_curve, other_half
 
 if TYPE_CHECKING:
@@ -165,11 +166,6 @@ _REFINE_MAX_SHIFT_PX = 1.5
 means it has locked onto something else, and the curve peak is kept."""
 _REFINE_MAX_SHAPE = 0.3
 """Largest entry of the refinement's linear shape correction (30 % scale or shear)."""
-_SPLINE_MARGIN_PX = 10
-"""Extra pixels around the sampled positions on which the spline is fitted."""
-_GRADIENT_STEP_PX = 0.1
-"""Half step of the central differences of the spline image in the refinement (the
-spline is twice continuously differentiable, so this is its derivative to 1e-3)."""
 _JACOBIAN_STEP_PX = 0.5
 """Half step of the central differences of the rays used for the local affine map."""
 
@@ -361,13 +357,10 @@ def _sample(grey: np.ndarray, u: np.ndarray, v: np.ndarray, cols: tuple[int, int
 
 
 def _sample_spline(
-    grey: np.ndarray, u: np.ndarray, v: np.ndarray, cols: tuple[int, int]
-) -> np.ndarray:
-    """Cubic B-spline samples of ``grey`` at ``(u, v)`` using only columns ``cols``.
-
-    The spline coefficients are computed on a window around the positions only (its
-    mirror-boundary transient decays as ``0.268^k``: below 1e-5 after
-    :data:`_SPLINE_MARGIN_PX`), so one call costs about as much as the samples.
+    grey: np.ndarray, positions: np.ndarray, cols: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cubic B-spline value and gradient (d/du, d/dv) of ``grey`` at ``positions``
+    (..., 2), using only columns ``cols`` (:mod:`endomeasure.interpolation`).
 
     Notes
     -----
@@ -380,22 +373,8 @@ def _sample_spline(
     to 0.021 px RMS and on random surface points (median) from 0.055 to 0.038 px; the
     scene's other photometric effects change it by less (see ``docs/accuracy.md``).
     """
-    from scipy import ndimage
-
-    c0, c1 = cols
-    height = grey.shape[0]
-    m = _SPLINE_MARGIN_PX
-    u0 = max(c0, int(np.floor(np.min(u))) - m)
-    u1 = min(c1, int(np.ceil(np.max(u))) + m)
-    v0 = max(0, int(np.floor(np.min(v))) - m)
-    v1 = min(height - 1, int(np.ceil(np.max(v))) + m)
-    coef = ndimage.spline_filter(grey[v0 : v1 + 1, u0 : u1 + 1], order=3, mode="mirror")
-    uu = np.clip(np.asarray(u, dtype=np.float64), c0, c1) - u0
-    vv = np.clip(np.asarray(v, dtype=np.float64), 0, height - 1) - v0
-    out = ndimage.map_coordinates(
-        coef, [vv.ravel(), uu.ravel()], order=3, prefilter=False, mode="mirror"
-    )
-    return out.reshape(np.shape(uu))
+    coeffs, origin = spline_coefficients(grey, positions, cols=cols)
+    return spline_sample(coeffs, origin, positions)
 
 
 _SPLINE_POLE = np.sqrt(3.0) - 2.0
@@ -876,13 +855,7 @@ def _refine(
         pos = q + rel
         if not np.all(_inside(pos, (cols[0] + 0.5, cols[1] - 0.5), height)):
             return None
-        h = _GRADIENT_STEP_PX
-        stencil = (
-            pos[None] + np.array([[0.0, 0.0], [h, 0.0], [-h, 0.0], [0.0, h], [0.0, -h]])[:, None, :]
-        )
-        values, up, um, vp, vm = _sample_spline(grey, stencil[..., 0], stencil[..., 1], cols)
-        gu = (up - um) / (2 * h)
-        gv = (vp - vm) / (2 * h)
+        values, gu, gv = _sample_spline(grey, pos, cols)
         geometric = [gu, gv, gu * du, gu * dv, gv * du, gv * dv] if shape else [gu, gv]
         jac = np.concatenate([np.stack(geometric, axis=-1), photometric], axis=-1)
         coef = np.linalg.lstsq(-photometric, values, rcond=None)[0]  # best photometric fit
@@ -986,9 +959,13 @@ def _match_one(
     if not precision <= settings.max_precision_px:
         return _refuse(
             pixel, half, MatchStatus.UNTEXTURED,
-            f"{where} has too little texture along the search direction (it would "
-            f"locate the match to {precision:.2f} px, worse than "
-            f"{settings.max_precision_px:g} px)",
+            f"{where} has too little texture along the search direction ("
+            + (
+                f"it would locate the match to {precision:.2f} px, worse than "
+                f"{settings.max_precision_px:g} px)"
+                if np.isfinite(precision)
+                else "nothing there rises above the image noise)"
+            ),
             **fields,
         )  # fmt: skip
     if best < 0:
@@ -1071,7 +1048,7 @@ def _match_one(
         warped = offsets @ affine.T  # the identity for warp 'none'
     shape = settings.warp != "none"  # plain NCC: translation only
     # the refinement compares spline-interpolated patches on both sides (see _sample_spline)
-    template_fine = _sample_spline(grey, template_pos[:, 0], template_pos[:, 1], cols)
+    template_fine = _sample_spline(grey, template_pos, cols)[0]
     target_noise = max(_local_noise(grey, q0, target_cols, settings.patch), floor)
     refined = _refine(
         grey, q0, warped, offsets, template_fine, target_cols, height, shape, target_noise
@@ -1098,7 +1075,7 @@ def _match_one(
     except np.linalg.LinAlgError:
         stretch = np.nan
     design = np.stack([template_fine, np.ones(offsets.shape[0]), *offsets.T], axis=-1)
-    fine = _sample_spline(grey, pos[:, 0], pos[:, 1], target_cols)
+    fine = _sample_spline(grey, pos, target_cols)[0]
     gain = float(np.linalg.lstsq(design, fine, rcond=None)[0][0])
     energy_ref = 2.0 * noise**2 / precision**2
     fields["precision_px"] = _match_precision(
