@@ -304,11 +304,12 @@ def saddle_scores(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
     step_col = np.gradient(grid, axis=1)
     step_row = np.gradient(grid, axis=0)
     signs = ((1, 1), (-1, 1), (-1, -1), (1, -1))
+    image = gray.astype(np.float64)
     samples = []
     for sa, sb in signs:
         points = grid + 0.25 * (sa * step_col + sb * step_row)
         coords = [points[..., 1].ravel(), points[..., 0].ravel()]
-        samples.append(map_coordinates(gray.astype(np.float64), coords, order=1, mode="nearest"))
+        samples.append(map_coordinates(image, coords, order=1, mode="nearest"))
     q = np.stack(samples).reshape(4, *grid.shape[:2])
     spread = q.max(axis=0) - q.min(axis=0)
     score = np.abs(q[0] + q[2] - q[1] - q[3]) / np.maximum(2 * spread, 1e-9)

@@ -84,11 +84,11 @@ The first factor is the classic least-squares term. The second is the noise time
 *noise's own derivative* in the searched patch (the refinement's gradients are those of
 the noisy image): negligible on strong texture, but on the simulator's metal at sensor
 noise (per-sample gradient about equal to the noise) it doubles the variance. Without
-it (and in the reference half's pixels) the precision was 1.7-2.0x optimistic on random
-surface points of noisy scenes (RMS z), while the marks were right. With it, on noisy
-renders of scene seeds 0-5: random points 1.24, 0.83, 0.98, 1.29, 1.09, 1.08; marks
-0.85, 0.89, 0.87, 0.86, 1.21, 0.79; under synthetic white noise of known sigma on
-noise-free renders 0.78 (random) and 0.83 (marks).
+it (and in the reference half's pixels) the precision was about twice too optimistic on
+random surface points of noisy scenes, while the marks were right. With it, on noisy
+renders of scene seeds 0-5, the RMS z-score along the curve is 0.80-1.18 for random
+points and 0.79-1.22 for the marks (``docs/accuracy.md``, "Match precision against the
+simulator's truth", made by ``bench/match_precision.py``).
 """
 
 from __future__ import annotations
@@ -154,9 +154,8 @@ keep an error the noise term cannot predict: on noise-free renders of the simula
 scene set with seeds 1 and 2 (not the committed seed-0 images the acceptance uses) the
 value that gives random surface points an RMS z-score of 1 along the curve is 1.03
 and 0.93 grey levels (marks: 1.7 and 1.4). On noisy images (noise 1-3 grey levels) it
-adds 5-30 % to the noise term. (Fitted with the first-order precision; with
-:func:`_match_precision` random points of the noise-free seed-0 renders give RMS z 0.86,
-the marks 1.58.)"""
+adds 5-30 % to the noise term. (Fitted with the first-order precision when the term was
+introduced; ``bench/match_precision.py --noise-free`` shows what it gives now.)"""
 _NOISE_WINDOW_PATCHES = 4
 """Side of the local noise-estimation window, in patch sizes."""
 _REFINE_ITERATIONS = 12
@@ -1162,15 +1161,47 @@ def find_matches(
     noise_sigma: float | None = None,
     check_back: bool = True,
 ) -> list[Match]:
-    """Find the matches of several points of one half; see :func:`find_match`.
+    """Find, for each point of one half, the point of the other half that shows the same
+    surface point (the search is described in the module notes).
 
     Parameters
     ----------
-    pixels : ndarray, shape (N, 2), px
+    model : CameraModel
+        Calibrated model of the probe.
+    image : ndarray, shape (H, W) or (H, W, 3)
+        The whole split image (uint8, uint16 or float grey levels; colour is averaged).
+    pixels : array_like, shape (N, 2), px
+        Full-image coordinates of the points in ``half``.
+    half : Half or {'left', 'right'}
+        The half the points are in.
+    depth_range_mm : (near, far), mm
+        Working depth range searched (z in the model frame).
+    patch : int, px
+        Side of the square correlation patch (odd).
+    warp : {'plane', 'affine', 'none'}
+        How the search patch is warped into the other half: ``'plane'`` (default) searches
+        with the local affine map between the halves and refines with the exact map of
+        a surface of constant depth; ``'affine'`` uses the affine map throughout;
+        ``'none'`` compares plain square patches.
+    min_score, max_second_ratio, max_precision_px : float
+        Refusal thresholds (:data:`MIN_SCORE`, :data:`MAX_SECOND_RATIO`,
+        :data:`MAX_PRECISION_PX`).
+    noise_sigma : float, optional
+        Image noise, grey levels; estimated around the point by default.
+    check_back : bool
+        Search back from the candidate to confirm it (the one-half-only test).
 
     Returns
     -------
-    list of Match, one per point, in order.
+    list of Match
+        One per point, in order: ``status`` OK with the match, score, depth, point and
+        ray gap, or a refusal with a reason code and a one-line message.
+
+    Raises
+    ------
+    BadInputError
+        For an image that does not fit the model, a point outside its half or invalid
+        settings.
     """
     half = Half.parse(half)
     settings = _settings(depth_range_mm, patch, warp, min_score, max_second_ratio, max_precision_px)
@@ -1194,67 +1225,11 @@ def find_matches(
 
 
 def find_match(
-    model: CameraModel,
-    image: np.ndarray,
-    pixel: np.ndarray,
-    half: Half | str,
-    *,
-    depth_range_mm: tuple[float, float] = (8.0, 60.0),
-    patch: int = 15,
-    warp: str = "plane",
-    min_score: float = MIN_SCORE,
-    max_second_ratio: float = MAX_SECOND_RATIO,
-    max_precision_px: float = MAX_PRECISION_PX,
-    noise_sigma: float | None = None,
-    check_back: bool = True,
+    model: CameraModel, image: np.ndarray, pixel: np.ndarray, half: Half | str, **options
 ) -> Match:
-    """Find the point of the other half that shows the same surface point as ``pixel``.
-
-    Parameters
-    ----------
-    model : CameraModel
-        Calibrated model of the probe.
-    image : ndarray, shape (H, W) or (H, W, 3)
-        The whole split image (uint8, uint16 or float grey levels; colour is averaged).
-    pixel : array_like, shape (2,), px
-        Full-image coordinates of the point in ``half``.
-    half : Half or {'left', 'right'}
-        The half the point is in.
-    depth_range_mm : (near, far), mm
-        Working depth range searched (z in the model frame).
-    patch : int, px
-        Side of the square correlation patch (odd).
-    warp : {'plane', 'affine', 'none'}
-        How the search patch is warped into the other half: ``'plane'`` (default) searches
-        with the local affine map between the halves and refines with the exact map of
-        a surface of constant depth; ``'affine'`` uses the affine map throughout;
-        ``'none'`` compares plain square patches.
-    min_score, max_second_ratio, max_precision_px : float
-        Refusal thresholds (:data:`MIN_SCORE`, :data:`MAX_SECOND_RATIO`,
-        :data:`MAX_PRECISION_PX`).
-    noise_sigma : float, optional
-        Image noise, grey levels; estimated around the point by default.
-    check_back : bool
-        Search back from the candidate to confirm it (the one-half-only test).
-
-    Returns
-    -------
-    Match
-        ``status`` OK with the match, score, depth, point and ray gap, or a refusal with
-        a reason code and a one-line message.
-
-    Raises
-    ------
-    BadInputError
-        For an image that does not fit the model, a point outside its half or invalid
-        settings.
-    """
+    """The match of one point, ``pixel`` (array_like, shape (2,), px, full-image
+    coordinates in ``half``); ``options`` and the rest as :func:`find_matches`."""
     pixel = np.asarray(pixel, dtype=np.float64)
     if pixel.shape != (2,):
         raise BadInputError(f"a point needs two coordinates (u, v), got shape {pixel.shape}")
-    return find_matches(
-        model, image, pixel[None], half,
-        depth_range_mm=depth_range_mm, patch=patch, warp=warp, min_score=min_score,
-        max_second_ratio=max_second_ratio, max_precision_px=max_precision_px,
-        noise_sigma=noise_sigma, check_back=check_back,
-    )[0]  # fmt: skip
+    return find_matches(model, image, pixel[None], half, **options)[0]

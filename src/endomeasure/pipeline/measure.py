@@ -327,7 +327,8 @@ def _next_name(names: Sequence[str]) -> str:
     return f"m{max(numbers, default=0) + 1:03d}"
 
 
-def _accuracy_index(value: float, bias: float, std: float) -> float:
+def accuracy_index(value: float, bias: float, std: float) -> float:
+    """The predicted 95 % error bound relative to the value, percent (module docstring)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         return float(100.0 * (abs(bias) + Z95 * std) / abs(value)) if value != 0 else math.inf
 
@@ -482,7 +483,7 @@ def measure_points(
     bias, std = float(pred.bias[0]), float(pred.std[0])
     std_image = float(pred.parts["image"][1][0]) if "image" in pred.parts else math.nan
     std_cal = float(pred.parts["calibration"][1][0]) if "calibration" in pred.parts else math.nan
-    relative = _accuracy_index(value, bias, std)
+    relative = accuracy_index(value, bias, std)
 
     measured = [
         MeasuredPoint(

@@ -409,7 +409,12 @@ def predict_stored_measurement(
     from endomeasure.io.session import Record, edit_session, open_session
     from endomeasure.measure.kinds import kind_spec
     from endomeasure.measure.predict import predict_measurement_error
-    from endomeasure.pipeline.measure import MEASUREMENT_RECORD, Z95, load_calibrated_model
+    from endomeasure.pipeline.measure import (
+        MEASUREMENT_RECORD,
+        Z95,
+        accuracy_index,
+        load_calibrated_model,
+    )
 
     _check_rho(rho_images, rho_points)
     options = _options(method, n_samples, seed)
@@ -450,7 +455,7 @@ def predict_stored_measurement(
         parts.get("image", std if not calibration else math.nan),
         parts.get("calibration", math.nan),
         Z95 * std,
-        100.0 * (abs(bias) + Z95 * std) / abs(value) if value else math.inf,
+        accuracy_index(value, bias, std),
         int(pred.n_invalid[0]),
     )
     if store:

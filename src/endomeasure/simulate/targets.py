@@ -164,7 +164,9 @@ class Chessboard(_FlatBoard):
     @property
     def spec(self) -> str:
         """Detector spec string, e.g. ``chessboard:8x6:1``."""
-        return f"chessboard:{self.cols}x{self.rows}:{self.square_mm:g}"
+        from endomeasure.features.boards import ChessboardSpec
+
+        return ChessboardSpec(self.cols, self.rows, self.square_mm).canonical()
 
     def _albedo(self, bx: np.ndarray, by: np.ndarray, dtype) -> np.ndarray:
         i = np.floor(bx)
@@ -235,12 +237,12 @@ class CharucoBoard(_FlatBoard):
     @property
     def cols(self) -> int:
         """Inner corners per row."""
-        return self.squares_x - 1
+        return self.board_spec.cols
 
     @property
     def rows(self) -> int:
         """Inner corners per column."""
-        return self.squares_y - 1
+        return self.board_spec.rows
 
     @property
     def spec(self) -> str:
