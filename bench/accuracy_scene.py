@@ -614,9 +614,10 @@ The same {h["n"]} distances under other inputs (within: |error| <= 2 sigma; with
   the noise's own derivative, which doubles the variance on weak texture) plus the
   search's misfit (`MISFIT_DN`, an equivalent image noise of 1 grey level measured on
   noise-free renders of scene seeds 1 and 2, not these images). Without the second-order
-  term the precision was 1.7-2.0x optimistic on random points of the metal (RMS z on
-  noisy renders), with it RMS z is 0.8-1.3 on seeds 0-5 (`correspondence` module
-  notes); the marks, whose strong texture makes it negligible, stay near 1. With the
+  term the precision was about twice too optimistic on random points of the metal, with
+  it RMS z is 0.8-1.2 on noisy renders of seeds 0-5 ("Match precision against the
+  simulator's truth", `bench/match_precision.py`); the marks, whose strong texture
+  makes it negligible, stay near 1. With the
   truth optics and the sample images the matches are
   {float(np.sqrt(np.nanmean(np.sum(noisy_truth_err**2, 1)))):.3f} px RMS, on noise-free
   renders of the same scenes {float(np.sqrt(np.nanmean(np.sum(clean_err**2, 1)))):.3f} px
@@ -624,9 +625,11 @@ The same {h["n"]} distances under other inputs (within: |error| <= 2 sigma; with
 - **The search's systematic floor.** The refinement used to compare bilinear samples of
   the two patches; bilinear interpolation blurs by an amount that depends on the
   sub-pixel phase, which pulled the fit towards whole pixels: on noise-free renders the
-  marks were 0.033 px RMS from the truth (0.035 px with vignetting, specular light,
-  defocus and the apex band all switched off, 0.034 px at 64 instead of 16 rays per
-  pixel, so neither the scene's photometry nor the renderer's sampling was the cause).
+  marks were 0.033 px RMS from the truth (measured once, when the spline came in: 0.035
+  px with vignetting, specular light, defocus and the apex band all switched off in a
+  modified preset, 0.034 px at 64 instead of 16 rays per pixel, so neither the scene's
+  photometry nor the renderer's sampling was the cause; this script does not redo those
+  renders).
   Cubic B-spline samples of both patches remove most of it. What is left has a mean u
   offset of {np.nanmean(clean_err[:, 0]):+.3f} px (u RMS {rms_u(clean_err):.3f} px);
   rendered noise-free *without vignetting* the offset is

@@ -39,21 +39,32 @@ def main() -> None:
         if h.found:
             by_image.setdefault(h.image, {})[h.half] = h
     rows: dict[str, list] = {}
+    own_uv: dict[tuple[str, str], list] = {}
+    pairs: dict[tuple[str, str], list] = {}
     for image, halves in by_image.items():
         truth = load_truth(data, image)
         if len(halves) < 2 or truth["distance_mm"] >= args.max_mm:
             continue
+        board = truth["board_spec"]
         left, right = halves["left"], halves["right"]
+        for h in (left, right):
+            own_uv.setdefault((board, h.half), []).append(h.errors)
         right_errors = {int(i): e for i, e in zip(right.ids, right.errors, strict=True)}
+        disparity, v_error = {}, {}
         for i, e, p in zip(left.ids, left.errors, left.detected, strict=True):
             if int(i) in right_errors:
-                disparity = e[0] - right_errors[int(i)][0]
-                rows.setdefault(truth["board_spec"], []).append(
-                    (*np.abs(p - centre), disparity, e[1])
-                )
+                disparity[int(i)] = e[0] - right_errors[int(i)][0]
+                v_error[int(i)] = e[1]
+                rows.setdefault(board, []).append((*np.abs(p - centre), disparity[int(i)], e[1]))
+        for i in disparity:
+            right_of = -1 if (i % left.cols) + 1 == left.cols else i + 1
+            for name, j in (("horizontal", right_of), ("vertical", i + left.cols)):
+                if j in disparity:
+                    pairs.setdefault((board, name), []).append(
+                        (v_error[i], v_error[j], disparity[i], disparity[j])
+                    )
     for board, values in sorted(rows.items()):
-        r = np.array(values)
-        r = r[np.all(np.isfinite(r), axis=1)]
+        r = finite(values)
         for column, name in ((1, "middle row"), (0, "middle column")):
             edges = np.quantile(r[:, column], [0, 1 / 3, 2 / 3, 1])
             parts = []
@@ -64,6 +75,24 @@ def main() -> None:
                     f"v {r[inside, 3].std():.4f}"
                 )
             print(f"{board}, < {args.max_mm:g} mm, distance from the {name}: " + " | ".join(parts))
+    for (board, half), errors in sorted(own_uv.items()):
+        e = finite(np.concatenate(errors))
+        print(f"{board}, {half} half: correlation of a corner's u and v errors {corr(e, 0, 1)}")
+    for (board, name), values in sorted(pairs.items()):
+        r = finite(values)
+        print(
+            f"{board}, {name} neighbours: correlation of v errors {corr(r, 0, 1)}, "
+            f"of disparity errors {corr(r, 2, 3)}"
+        )
+
+
+def finite(values) -> np.ndarray:
+    r = np.asarray(values, dtype=np.float64)
+    return r[np.all(np.isfinite(r), axis=1)]
+
+
+def corr(r: np.ndarray, a: int, b: int) -> str:
+    return f"{np.corrcoef(r[:, a], r[:, b])[0, 1]:+.2f}"
 
 
 if __name__ == "__main__":
