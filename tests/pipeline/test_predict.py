@@ -105,8 +105,8 @@ def test_separate_u_and_v_noise_is_predicted_per_axis(tmp_path):
     assert doc["sigma_px"] == list(NOISE_UV_PX)
     for kind in ("x-segment", "y-segment", "point-plane", "area"):
         assert _pooled_ratio(doc["zones"], kind) == pytest.approx(1.0, abs=STD_RATIO_TOL), kind
-    # one sigma (the RMS of the two) predicts the depth-driven point-to-plane error from
-    # u noise 2.5 times too large
+    # one sigma (the RMS of the two, 2.6 times sigma_u) over-predicts the depth-driven
+    # point-to-plane error, which follows u alone
     rms = float(np.sqrt(np.mean(np.square(NOISE_UV_PX))))
     single = _invoke(session, "--board-test", "--sigma", rms, "--no-calibration", "--json")
     assert _pooled_ratio(json.loads(single.stdout)["zones"], "point-plane") < 0.6
