@@ -46,10 +46,13 @@ from endomeasure.interpolation import bspline_weights, spline_coefficients, spli
 __all__ = [
     "SYMMETRY_SIGMA_SQUARES",
     "SubpixelResult",
+    "SymmetricProblem",
     "local_quadratic",
     "local_steps",
     "saddle_corners",
     "symmetric_corners",
+    "symmetric_problem",
+    "symmetric_system",
 ]
 
 # Gaussian window sigma in squares. Measured on the simulator's noise-free calibration
@@ -215,6 +218,133 @@ def _window(steps: np.ndarray, sigma_squares: float) -> _Window:
     return _Window(halfsize, keep, offsets[keep], weights[:, keep])
 
 
+@dataclasses.dataclass(frozen=True)
+class SymmetricProblem:
+    """The fixed parts of the point-symmetry fit of a set of corners.
+
+    Attributes
+    ----------
+    window : _Window
+        Integer offsets ``h`` (one of each pair ``h``, ``-h``) and their Gaussian weights.
+    shift : ndarray, shape (n, M, 2), px, or None
+        Second-order displacement ``s`` of each compared pair (curvature-aware pairs
+        ``c + s +- h``); None for plain 180-degree pairs.
+    coeffs : ndarray, shape (h, w), float32
+        Cubic B-spline coefficients of the image box around the corners.
+    origin : ndarray, shape (2,), int
+        (u, v) of the box's first sample, px.
+    weights : ndarray, shape (n, M)
+        Window weights with the pairs that would leave the image near its border removed.
+    """
+
+    window: _Window
+    shift: np.ndarray | None
+    coeffs: np.ndarray
+    origin: np.ndarray
+    weights: np.ndarray
+
+
+def symmetric_problem(
+    gray: np.ndarray,
+    start: np.ndarray,
+    steps: np.ndarray,
+    curvature: np.ndarray | None = None,
+    sigma_squares: float = SYMMETRY_SIGMA_SQUARES,
+) -> SymmetricProblem:
+    """Window, pair displacements, interpolant and border-clipped weights of the fit.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (height, width)
+    start : ndarray, shape (n, 2), px
+        Points the interpolant's box and the border clipping are set around.
+    steps : ndarray, shape (n, 2, 2), px
+        Local affine map of each corner (:func:`local_steps`).
+    curvature : ndarray, shape (n, 2, 3), px, optional
+        Local curvature (:func:`local_quadratic`); None for plain pairs.
+    sigma_squares : float
+        Window sigma in squares.
+
+    Returns
+    -------
+    SymmetricProblem
+    """
+    c = np.asarray(start, dtype=np.float64)
+    n = len(c)
+    window = _window(steps, sigma_squares)
+    shift = None
+    if curvature is not None:
+        curvature = np.asarray(curvature, dtype=np.float64)
+        if curvature.shape != (n, 2, 3):
+            raise ValueError(f"curvature must have shape ({n}, 2, 3), not {curvature.shape}")
+        board = np.einsum("nij,mj->nmi", np.linalg.inv(steps), window.offsets)  # d = A^-1 h
+        quad = np.stack(
+            [board[..., 0] ** 2, board[..., 0] * board[..., 1], board[..., 1] ** 2], axis=-1
+        )
+        shift = np.einsum("nij,nmj->nmi", curvature, quad)  # (n, M, 2) px
+    coeffs, origin = spline_coefficients(gray, c, window.halfsize)
+    box_h, box_w = coeffs.shape
+    hx, hy = window.offsets[:, 0], window.offsets[:, 1]
+    # Near the image border keep only the offsets whose pair stays inside.
+    local = c - origin
+    room = np.minimum(local, np.array([box_w - 1, box_h - 1]) - local) - BORDER_GUARD_PX
+    reach_u, reach_v = np.abs(hx)[None], np.abs(hy)[None]
+    if shift is not None:
+        reach_u, reach_v = reach_u + np.abs(shift[..., 0]), reach_v + np.abs(shift[..., 1])
+    fits = (reach_u <= room[:, 0, None]) & (reach_v <= room[:, 1, None])
+    weights = np.where(fits, window.weights, 0.0)
+    return SymmetricProblem(window, shift, coeffs, origin, weights)
+
+
+def symmetric_system(
+    problem: SymmetricProblem, c: np.ndarray, k: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Residuals of the symmetric comparison and their Jacobian at ``c`` (and ``k``).
+
+    Parameters
+    ----------
+    problem : SymmetricProblem
+    c : ndarray, shape (n, 2), px
+        Corner estimates.
+    k : ndarray, shape (n, 2), 1/px, or None
+        Relative illumination gradients; None fits none (two unknowns per corner).
+
+    Returns
+    -------
+    residual : ndarray, shape (n, M)
+        ``I(c+s+h) - I(c+s-h) - (k.h) (I(c+s+h) + I(c+s-h))``.
+    jacobian : ndarray, shape (n, M, p)
+        d residual / d (u, v[, k_u, k_v]); ``p`` is 4 with ``k``, else 2.
+    plus, minus : ndarray, shape (n, M)
+        The compared samples ``I(c+s+h)`` and ``I(c+s-h)``.
+    """
+    window = problem.window
+    coeffs, origin = problem.coeffs, problem.origin
+    hx, hy = window.offsets[:, 0], window.offsets[:, 1]
+    if problem.shift is not None:
+        offsets = window.offsets[None]
+        centre = c[:, None] + problem.shift
+        plus, gu_p, gv_p = spline_sample(coeffs, origin, centre + offsets)
+        minus, gu_m, gv_m = spline_sample(coeffs, origin, centre - offsets)
+    else:
+        size = 2 * window.halfsize + 1
+        taps = np.arange(-window.halfsize - 1, window.halfsize + 3)  # interpolation support
+        mirror = size * size - 1 - window.keep  # flat index of -h for h at keep
+        plus, minus, gu_p, gu_m, gv_p, gv_m = _symmetric_samples(
+            coeffs, origin, c, taps, window, mirror
+        )
+    residual = plus - minus
+    jac_u, jac_v = gu_p - gu_m, gv_p - gv_m
+    columns = [jac_u, jac_v]
+    if k is not None:
+        tilt = k[:, 0, None] * hx[None] + k[:, 1, None] * hy[None]
+        total = plus + minus
+        residual = residual - tilt * total
+        columns = [jac_u - tilt * (gu_p + gu_m), jac_v - tilt * (gv_p + gv_m)]
+        columns += [-hx[None] * total, -hy[None] * total]
+    return residual, np.stack(columns, axis=-1), plus, minus
+
+
 def _symmetric_samples(
     coeffs: np.ndarray,
     origin: np.ndarray,
@@ -319,55 +449,14 @@ def symmetric_corners(
             raise ValueError(f"steps must have shape ({len(c)}, 2, 2), not {steps.shape}")
     start_points = c.copy()
     n = len(c)
-    window = _window(steps, sigma_squares)
-    shift = None
-    if curvature is not None:
-        curvature = np.asarray(curvature, dtype=np.float64)
-        if curvature.shape != (n, 2, 3):
-            raise ValueError(f"curvature must have shape ({n}, 2, 3), not {curvature.shape}")
-        board = np.einsum("nij,mj->nmi", np.linalg.inv(steps), window.offsets)  # d = A^-1 h
-        quad = np.stack(
-            [board[..., 0] ** 2, board[..., 0] * board[..., 1], board[..., 1] ** 2], axis=-1
-        )
-        shift = np.einsum("nij,nmj->nmi", curvature, quad)  # (n, M, 2) px
-    halfsize, size = window.halfsize, 2 * window.halfsize + 1
-    coeffs, origin = spline_coefficients(gray, c, halfsize)
-    box_h, box_w = coeffs.shape
-    taps = np.arange(-halfsize - 1, halfsize + 3)  # interpolation support of the box
-    mirror = size * size - 1 - window.keep  # flat index of -h for h at keep
-    hx, hy = window.offsets[:, 0], window.offsets[:, 1]
-    # Near the image border keep only the offsets whose pair stays inside.
-    local = c - origin
-    room = np.minimum(local, np.array([box_w - 1, box_h - 1]) - local) - BORDER_GUARD_PX
-    reach_u, reach_v = np.abs(hx)[None], np.abs(hy)[None]
-    if shift is not None:
-        reach_u, reach_v = reach_u + np.abs(shift[..., 0]), reach_v + np.abs(shift[..., 1])
-    fits = (reach_u <= room[:, 0, None]) & (reach_v <= room[:, 1, None])
-    weights = np.where(fits, window.weights, 0.0)
+    problem = symmetric_problem(gray, c, steps, curvature, sigma_squares)
+    weights = problem.weights
     n_unknowns = 4 if illumination else 2
     k = np.zeros((n, 2))
     ok = (weights > 0).sum(axis=1) >= MIN_WINDOW_PAIRS
     settled = np.zeros(n, dtype=bool)
-    offsets = window.offsets[None]
     for _ in range(SYMMETRY_MAX_ITERATIONS):
-        if shift is not None:
-            centre = c[:, None] + shift
-            plus, gu_p, gv_p = spline_sample(coeffs, origin, centre + offsets)
-            minus, gu_m, gv_m = spline_sample(coeffs, origin, centre - offsets)
-        else:
-            plus, minus, gu_p, gu_m, gv_p, gv_m = _symmetric_samples(
-                coeffs, origin, c, taps, window, mirror
-            )
-        residual = plus - minus
-        jac_u, jac_v = gu_p - gu_m, gv_p - gv_m
-        columns = [jac_u, jac_v]
-        if illumination:
-            tilt = k[:, 0, None] * hx[None] + k[:, 1, None] * hy[None]
-            total = plus + minus
-            residual = residual - tilt * total
-            columns = [jac_u - tilt * (gu_p + gu_m), jac_v - tilt * (gv_p + gv_m)]
-            columns += [-hx[None] * total, -hy[None] * total]
-        jacobian = np.stack(columns, axis=-1)  # (n, M, p)
+        residual, jacobian, _, _ = symmetric_system(problem, c, k if illumination else None)
         weighted = jacobian * weights[:, :, None]
         normal = np.matmul(weighted.transpose(0, 2, 1), jacobian)
         gradient = np.matmul(weighted.transpose(0, 2, 1), residual[:, :, None])[..., 0]
