@@ -101,11 +101,13 @@ points in one batched triangulation), median of 50 runs:
 | UT of a 5-point area, 41 sigma points + 190 cross points (median of 20) | {t_area * 1e3:.2f} ms | {t_area / t_tri:.1f} |
 | same, plain 41-point UT (`cross=None`) | {t_area_plain * 1e3:.2f} ms | {t_area_plain / t_tri:.1f} |
 
-With the calibration covariance every parameter sigma point is another model, so the
-cost is one triangulation per parameter sigma point (2F + 1 models). Measurements of
-three or more points also get one cross point per pair of pixel coordinates (the
-variance then is second-order exact, `endomeasure.solvers.uncertainty`); each moves
-at most two points, and only distinct points are triangulated.
+With the calibration covariance every parameter sigma point is another model; all
+of them are triangulated in the same batched solve, with a parameter vector per
+correspondence (`triangulate(..., params=...)`; one solve per model took 125 ms).
+Measurements of three or more points also get one cross point per pair of pixel
+coordinates (the variance then is second-order exact,
+`endomeasure.solvers.uncertainty`); each moves at most two points, and only distinct
+points are triangulated.
 
 Error map: a 1 mm x-segment centred at each of {args.map_points:,} grid points seen by
 both halves (10-45 mm), UT with image noise ({em.visible.sum():,} templates visible in
@@ -116,7 +118,9 @@ both halves):
 | ML triangulation of the templates' {2 * args.map_points:,} correspondences (peer) | {t_peer:.2f} s | 1.0 |
 | error map (projection + UT) | {t_map:.2f} s | {t_map / t_peer:.1f} |
 
-Targets: UT under {UT_TARGET_S * 1e3:g} ms ({"met" if t_ut < UT_TARGET_S else "missed"}),
+Targets: one measurement's UT under {UT_TARGET_S * 1e3:g} ms, with image noise
+({"met" if t_ut < UT_TARGET_S else "missed"}) and with the calibration too
+({"met" if t_utc < UT_TARGET_S else "missed"});
 10,000-point map under {MAP_TARGET_S:g} s ({"met" if t_map < MAP_TARGET_S else "missed"}).
 """  # noqa: E501
     if not args.no_write:

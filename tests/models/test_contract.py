@@ -154,3 +154,45 @@ def test_point_jacobian_matches_central_differences(any_model, half, rng):
         np.testing.assert_allclose(jac.dq_dp[ok][:, :, axis], numeric[ok],
                                    atol=JACOBIAN_REL_TOL * scale, rtol=0)  # fmt: skip
     assert jac.dq_dp.shape == (n, 2, 3)
+
+
+PER_ROW_TOL = 1e-12
+"""Rays traced with a parameter vector per pixel must equal those of the model built
+from that vector: the same arithmetic, only batched (mm and unit-direction units)."""
+
+
+def _perturbed_params(model, rng, k):
+    """``k`` parameter vectors near the model's: relative 1e-3 steps on every parameter,
+    and also the distortion terms a calibration usually holds at zero."""
+    scale = np.maximum(np.abs(model.params), 1e-2)
+    return model.params + 1e-3 * scale * rng.standard_normal((k, model.params.size))
+
+
+@pytest.mark.parametrize("half", list(Half))
+def test_rays_with_a_parameter_vector_per_pixel_equal_each_models_rays(any_model, half, rng):
+    q = _half_grid(any_model, half, 6, 5).reshape(-1, 2)
+    params = _perturbed_params(any_model, rng, q.shape[0])
+    batched = any_model.rays(q, half, params)
+    assert np.all(batched.status == Status.OK)
+    for i in range(q.shape[0]):
+        own = any_model.with_params(params[i]).rays(q[i], half)
+        np.testing.assert_allclose(batched.origins[i], own.origins, rtol=0, atol=PER_ROW_TOL)
+        np.testing.assert_allclose(batched.directions[i], own.directions, rtol=0, atol=PER_ROW_TOL)
+
+
+def test_invalid_parameter_vectors_are_refused_per_pixel(any_model, rng):
+    q = _half_grid(any_model, Half.LEFT, 2, 2).reshape(-1, 2)
+    params = np.repeat(any_model.params[None], q.shape[0], axis=0)
+    bad_focal = [i for i, n in enumerate(any_model.PARAM_NAMES) if n.endswith("fx")][0]
+    params[1, bad_focal] = -1.0
+    params[2, 0] = np.nan
+    with pytest.raises(ValueError, match="focal lengths must be positive"):
+        any_model.with_params(params[1])
+    np.testing.assert_array_equal(any_model.valid_params(params), [True, False, False, True])
+    rays = any_model.rays(q, Half.LEFT, params)
+    np.testing.assert_array_equal(
+        rays.status, [Status.OK, Status.INVALID_INPUT, Status.INVALID_INPUT, Status.OK]
+    )
+    assert np.all(np.isnan(rays.origins[1:3]))
+    with pytest.raises(ValueError, match="params must have shape"):
+        any_model.rays(q, Half.LEFT, params[:2])

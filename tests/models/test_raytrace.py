@@ -10,6 +10,7 @@ with the model's Snell tracing or ray aiming.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from endomeasure.conventions import Half, Status
 from endomeasure.geometry.distortion import distort
@@ -130,3 +131,14 @@ def test_glass_index_changes_projection(raytrace_model):
     params[names.index("n_glass")] = 1.6
     moved = raytrace_model.with_params(params).project(point, "left").pixels
     assert np.linalg.norm(moved - base) > 1.0
+
+
+def test_glass_index_and_face_rules_hold_per_parameter_vector(raytrace_model):
+    """The validity rules of :meth:`valid_params` are the constructor's, row by row."""
+    names = ("n_glass", "rear_d", "left_d", "right_d")
+    rows = np.repeat(raytrace_model.params[None], len(names) + 1, axis=0)
+    for i, name in enumerate(names):
+        rows[i + 1, raytrace_model.index(name)] = 1.0 if name == "n_glass" else -0.1
+        with pytest.raises(ValueError):
+            raytrace_model.with_params(rows[i + 1])
+    np.testing.assert_array_equal(raytrace_model.valid_params(rows), [True] + [False] * 4)

@@ -147,3 +147,25 @@ def test_mismatched_inputs_are_rejected(raytrace_model):
         triangulate(raytrace_model, np.zeros((3, 2)), np.zeros((2, 2)))
     with pytest.raises(ValueError, match="method"):
         triangulate(raytrace_model, np.zeros((1, 2)), np.zeros((1, 2)), "dlt")
+
+
+@pytest.mark.parametrize("method", ["ml", "midpoint"])
+def test_a_parameter_vector_per_correspondence_equals_each_models_triangulation(
+    any_model, rng, method
+):
+    """The batched solve under many models (the UT's calibration sigma points) gives each
+    correspondence the point its own model gives it; an invalid vector fails alone."""
+    _, ql, qr = visible_points(any_model, rng, 12)
+    scale = np.maximum(np.abs(any_model.params), 1e-2)
+    params = any_model.params + 1e-4 * scale * rng.standard_normal((12, any_model.params.size))
+    params[5, 0] = -1.0  # fx (pinhole: left fx) not positive
+    batched = triangulate(any_model, ql, qr, method, reproject=False, params=params)
+    for i in range(12):
+        if i == 5:
+            assert batched.status[i] == Status.INVALID_INPUT
+            continue
+        own = triangulate(any_model.with_params(params[i]), ql[i], qr[i], method, reproject=False)
+        assert batched.status[i] == own.status == Status.OK
+        np.testing.assert_allclose(batched.points[i], own.points, rtol=0, atol=ORACLE_TOL_MM)
+    with pytest.raises(ValueError, match="reproject=False"):
+        triangulate(any_model, ql, qr, "midpoint", params=params)

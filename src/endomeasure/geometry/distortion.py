@@ -83,16 +83,17 @@ class Undistortion(NamedTuple):
     converged: np.ndarray  # (...,) bool
 
 
-def undistort(xd: np.ndarray, yd: np.ndarray, coeffs, tol: float) -> Undistortion:
+def undistort(xd: np.ndarray, yd: np.ndarray, coeffs, tol) -> Undistortion:
     """Invert :func:`distort` by Newton's method, reporting convergence per point.
 
     Parameters
     ----------
     xd, yd : ndarray, shape (...)
         Distorted normalised coordinates.
-    coeffs : sequence of 5 floats
-        ``k1, k2, p1, p2, k3``.
-    tol : float
+    coeffs : sequence of 5 floats or of 5 arrays of shape (...)
+        ``k1, k2, p1, p2, k3``, one set for all points or one per point (a batch of
+        lens models, e.g. the sigma points of a calibration covariance).
+    tol : float or ndarray, shape (...)
         Convergence threshold on the distorted-coordinate residual, in normalised
         units (a pixel tolerance divided by the focal length).
 
@@ -103,25 +104,32 @@ def undistort(xd: np.ndarray, yd: np.ndarray, coeffs, tol: float) -> Undistortio
         steps, or that leave the monotonic part of the radial polynomial, are NaN with
         ``converged`` False: the inverse is not unique there.
     """
-    k1, k2, p1, p2, k3 = coeffs
     xd = np.asarray(xd, dtype=np.float64)
     yd = np.asarray(yd, dtype=np.float64)
+    # per-point coefficients follow the active points through the iteration
+    per_point = [np.broadcast_to(c, xd.shape).reshape(-1) if np.ndim(c) else c
+                 for c in (*coeffs, tol)]  # fmt: skip
+    *coeffs, tol = per_point
+    k1, k2, p1, p2, k3 = coeffs
     x = xd.copy()
     y = yd.copy()
     r2_max = max_monotonic_radius2(k1, k2, k3)
+    if np.ndim(r2_max):
+        r2_max = r2_max.reshape(x.shape)
     converged = np.zeros(x.shape, dtype=bool)
     active = np.isfinite(x) & np.isfinite(y)
     for _ in range(UNDISTORT_MAX_ITER):
         if not active.any():
             break
-        xa, ya = x[active], y[active]
-        ex, ey = distort(xa, ya, coeffs)
-        ex -= xd[active]
-        ey -= yd[active]
-        done = np.maximum(np.abs(ex), np.abs(ey)) < tol
         idx = np.flatnonzero(active)
+        cs = [c[idx] if np.ndim(c) else c for c in coeffs]
+        xa, ya = x.flat[idx], y.flat[idx]
+        ex, ey = distort(xa, ya, cs)
+        ex -= xd.flat[idx]
+        ey -= yd.flat[idx]
+        done = np.maximum(np.abs(ex), np.abs(ey)) < (tol[idx] if np.ndim(tol) else tol)
         converged.flat[idx[done]] = True
-        j11, j12, j21, j22 = distort_jacobian(xa, ya, coeffs)
+        j11, j12, j21, j22 = distort_jacobian(xa, ya, cs)
         det = j11 * j22 - j12 * j21
         with np.errstate(divide="ignore", invalid="ignore"):
             sx = (j22 * ex - j12 * ey) / det
@@ -140,17 +148,35 @@ def undistort(xd: np.ndarray, yd: np.ndarray, coeffs, tol: float) -> Undistortio
     return Undistortion(x, y, converged)
 
 
-def max_monotonic_radius2(k1: float, k2: float, k3: float) -> float:
+def max_monotonic_radius2(k1, k2, k3):
     """Largest ``r^2`` up to which the radial map ``r (1 + k1 r^2 + k2 r^4 + k3 r^6)`` grows.
 
     Beyond it the distortion folds back and one distorted radius has two preimages, so
-    projections there are not trustworthy. Returns ``inf`` when the map grows for all r.
+    projections there are not trustworthy. ``inf`` where the map grows for all r.
+
+    Parameters
+    ----------
+    k1, k2, k3 : float or ndarray, shape (...)
+
+    Returns
+    -------
+    float, or ndarray of shape (...) for array coefficients
 
     Notes
     -----
     ``d/dr [r + k1 r^3 + k2 r^5 + k3 r^7] = 1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3`` with
-    ``s = r^2``; the answer is its smallest positive real root.
+    ``s = r^2``; the answer is its smallest positive real root, found once per distinct
+    coefficient set.
     """
+    if not (np.ndim(k1) or np.ndim(k2) or np.ndim(k3)):
+        return _max_monotonic_radius2(float(k1), float(k2), float(k3))
+    k = np.stack(np.broadcast_arrays(k1, k2, k3), axis=-1).astype(np.float64)
+    distinct, inverse = np.unique(k.reshape(-1, 3), axis=0, return_inverse=True)
+    r2 = np.array([_max_monotonic_radius2(*row) for row in distinct.tolist()])
+    return r2[inverse.reshape(-1)].reshape(k.shape[:-1])
+
+
+def _max_monotonic_radius2(k1: float, k2: float, k3: float) -> float:
     roots = np.roots([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]) if any((k1, k2, k3)) else []
     positive = [r.real for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12 and r.real > 0]
     return float(min(positive)) if positive else float("inf")

@@ -91,7 +91,8 @@ class CameraModel(abc.ABC):
 
     Subclasses define ``NAME``, ``PARAM_NAMES``, ``GROUPS`` (name -> slice of
     ``params``), ``DEFAULT_FIXED`` and implement :meth:`_rays` and :meth:`_project`
-    for one half on flat arrays.
+    for one half on flat arrays; optionally :meth:`_constraints` (valid parameter
+    values) and a vectorised :meth:`_rays_rows` (one parameter vector per pixel).
     """
 
     params: np.ndarray
@@ -115,10 +116,24 @@ class CameraModel(abc.ABC):
             raise ValueError(f"unknown fixed parameter(s) {sorted(unknown)} for {self.NAME}")
         params.flags.writeable = False
         object.__setattr__(self, "params", params)
-        self._check()
+        for holds, message in self._constraints(params):
+            if not holds:
+                raise ValueError(message)
 
-    def _check(self) -> None:  # noqa: B027  (an optional hook, not abstract)
-        """Subclass hook: validate parameter values (raise ValueError)."""
+    @classmethod
+    def _constraints(cls, params: np.ndarray) -> list[tuple[np.ndarray, str]]:
+        """Subclass hook: the rules valid parameter vectors ``params`` (..., P) obey, as
+        ``(holds, message)`` pairs with ``holds`` of shape (...)."""
+        return []
+
+    @classmethod
+    def valid_params(cls, params: np.ndarray) -> np.ndarray:
+        """Whether each parameter vector (..., P) makes a valid model, shape (...)."""
+        params = np.asarray(params, dtype=np.float64)
+        ok = np.all(np.isfinite(params), axis=-1)
+        for holds, _ in cls._constraints(params):
+            ok &= holds
+        return ok
 
     # ----- named access -------------------------------------------------------------
     @classmethod
@@ -128,6 +143,11 @@ class CameraModel(abc.ABC):
             return cls.PARAM_NAMES.index(name)
         except ValueError:
             raise KeyError(f"{cls.NAME} has no parameter {name!r}") from None
+
+    @classmethod
+    def column(cls, params: np.ndarray, name: str) -> np.ndarray:
+        """The values of one named parameter in parameter vectors ``params`` (..., P)."""
+        return params[..., cls.index(name)]
 
     def __getattr__(self, name: str):
         # only reached when normal lookup fails: named parameters and groups
@@ -179,7 +199,7 @@ class CameraModel(abc.ABC):
         )
 
     # ----- the two questions ----------------------------------------------------------
-    def rays(self, pixels: np.ndarray, half: Half | str) -> Rays:
+    def rays(self, pixels: np.ndarray, half: Half | str, params: np.ndarray | None = None) -> Rays:
         """Backward: the ray each pixel of a half sees.
 
         Parameters
@@ -187,6 +207,11 @@ class CameraModel(abc.ABC):
         pixels : ndarray, shape (..., 2), px
             Full-image pixel coordinates.
         half : Half or {'left', 'right'}
+        params : ndarray, shape (..., P), optional
+            A parameter vector per pixel instead of the model's own: traces a batch of
+            models of this kind and configuration at once (e.g. the sigma points of a
+            calibration covariance). Pixels with an invalid vector
+            (:meth:`valid_params`) get ``INVALID_INPUT``.
 
         Returns
         -------
@@ -199,11 +224,23 @@ class CameraModel(abc.ABC):
         finite = status == Status.OK
         inside = in_half(flat, half, self.config.split, self.config.image_size)
         status[finite & ~inside] = Status.OUTSIDE_HALF
+        if params is not None:
+            params = np.asarray(params, dtype=np.float64)
+            if params.shape != (*shape, self.params.size):
+                raise ValueError(
+                    f"params must have shape {(*shape, self.params.size)} for pixels of shape "
+                    f"{(*shape, 2)}, got {params.shape}"
+                )
+            params = params.reshape(-1, self.params.size)
+            status[(status == Status.OK) & ~self.valid_params(params)] = Status.INVALID_INPUT
         origins = np.full((flat.shape[0], 3), np.nan)
         directions = np.full((flat.shape[0], 3), np.nan)
         todo = np.flatnonzero(status == Status.OK)
         if todo.size:
-            o, d, s = self._rays(flat[todo], half)
+            if params is None:
+                o, d, s = self._rays(flat[todo], half)
+            else:
+                o, d, s = self._rays_rows(flat[todo], half, params[todo])
             origins[todo], directions[todo], status[todo] = o, d, s
         bad = status != Status.OK
         origins[bad] = np.nan
@@ -283,6 +320,22 @@ class CameraModel(abc.ABC):
     @abc.abstractmethod
     def _rays(self, pixels: np.ndarray, half: Half) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rays of finite pixels inside the half, shape (N, 2) -> (N,3), (N,3), (N,)."""
+
+    def _rays_rows(self, pixels: np.ndarray, half: Half, params: np.ndarray):
+        """:meth:`_rays` with a valid parameter vector per pixel, ``params`` (N, P).
+
+        Default: one :meth:`_rays` call per distinct vector; models override it with
+        one vectorised pass.
+        """
+        origins = np.empty((pixels.shape[0], 3))
+        directions = np.empty((pixels.shape[0], 3))
+        status = np.empty(pixels.shape[0], dtype=STATUS_DTYPE)
+        distinct, inverse = np.unique(params, axis=0, return_inverse=True)
+        for k, row in enumerate(distinct):
+            mine = np.flatnonzero(inverse.reshape(-1) == k)
+            o, d, s = self.with_params(row)._rays(pixels[mine], half)
+            origins[mine], directions[mine], status[mine] = o, d, s
+        return origins, directions, status
 
     @abc.abstractmethod
     def _project(self, points: np.ndarray, half: Half) -> tuple[np.ndarray, np.ndarray]:

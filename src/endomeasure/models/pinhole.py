@@ -80,10 +80,10 @@ class PinholeModel(CameraModel):
         "t_right_left": slice(21, 24),
     }
 
-    def _check(self) -> None:
-        for half in ("left", "right"):
-            if getattr(self, f"{half}_fx") <= 0 or getattr(self, f"{half}_fy") <= 0:
-                raise ValueError("focal lengths must be positive")
+    @classmethod
+    def _constraints(cls, params):
+        f = params[..., [cls.index(f"{h}_{n}") for h in ("left", "right") for n in ("fx", "fy")]]
+        return [(np.all(f > 0, axis=-1), "focal lengths must be positive")]
 
     def intrinsics(self, half: Half) -> np.ndarray:
         return self.left if Half.parse(half) is Half.LEFT else self.right
@@ -119,19 +119,26 @@ class PinholeModel(CameraModel):
         return pixels, status, dq_dp
 
     def _rays(self, pixels, half):
-        fx, fy, cx, cy, k1, k2, p1, p2, k3 = self.intrinsics(half)
+        return self._rays_rows(pixels, half, self.params[None])
+
+    def _rays_rows(self, pixels, half, params):
+        """Rays with a parameter vector per pixel (N, 24), or one for all (1, 24)."""
+        group = self.GROUPS[half.label]
+        intr = params[:, group].T if params.shape[0] > 1 else params[0, group]
+        fx, fy, cx, cy, k1, k2, p1, p2, k3 = intr
         und = undistort(
             (pixels[:, 0] - cx) / fx,
             (pixels[:, 1] - cy) / fy,
             (k1, k2, p1, p2, k3),
-            UNDISTORT_TOL_PX / max(fx, fy),
+            UNDISTORT_TOL_PX / np.maximum(fx, fy),
         )
         d = np.stack([und.x, und.y, np.ones_like(und.x)], axis=-1)
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
         status = np.where(und.converged, Status.OK, Status.NOT_CONVERGED).astype(STATUS_DTYPE)
         origins = np.zeros_like(d)
         if half is Half.RIGHT:
-            R, t = self.pose_right_left()
-            origins[:] = -R.T @ t  # right camera centre in the left frame
-            d = d @ R  # R^T d for each row
+            R = rotation_matrix(params[:, self.GROUPS["rvec_right_left"]])  # (K, 3, 3)
+            t = params[:, self.GROUPS["t_right_left"]]
+            origins[:] = -np.einsum("kji,kj->ki", R, t)  # right camera centre, left frame
+            d = d @ R[0] if R.shape[0] == 1 else np.einsum("nj,nji->ni", d, R)  # R^T d
         return origins, d, status

@@ -43,10 +43,14 @@ AIM_MAX_ITER = 25
 UNDISTORT_TOL_PX = 1e-10  # px
 
 
-def plane_normal(a: float, b: float) -> np.ndarray:
-    """Unit normal ``(tan a, tan b, 1) / norm`` of a face tilted by a about y and b about x."""
-    n = np.array([np.tan(a), np.tan(b), 1.0])
-    return n / np.linalg.norm(n)
+def plane_normal(a, b) -> np.ndarray:
+    """Unit normal ``(tan a, tan b, 1) / norm`` of a face tilted by a about y and b about x.
+
+    ``a``, ``b`` floats or arrays of shape (...); returns shape (..., 3).
+    """
+    a, b = np.broadcast_arrays(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64))
+    n = np.stack([np.tan(a), np.tan(b), np.ones_like(a)], axis=-1)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
 class PrismTrace(NamedTuple):
@@ -66,6 +70,35 @@ class _AimMap(NamedTuple):
     lut: np.ndarray  # (K, NY, NX, 2): lens coordinates on a regular (q, wy, wx) grid
     lut_origin: np.ndarray  # (3,): wx, wy, q of lut[0, 0, 0]
     lut_step: np.ndarray  # (3,): grid steps in wx, wy, q
+
+
+def _faces(params: np.ndarray, half: Half) -> np.ndarray:
+    """Rear and front face of a half for parameter vectors (..., 19), packed for the
+    kernels: rear normal, rear distance, front normal, front distance, shape (..., 8)."""
+
+    def col(name):
+        return RaytraceModel.column(params, name)
+
+    rear = plane_normal(col("rear_a"), col("rear_b"))
+    front = plane_normal(col(f"{half.label}_a"), col(f"{half.label}_b"))
+    return np.concatenate(
+        [rear, col("rear_d")[..., None], front, col(f"{half.label}_d")[..., None]], axis=-1
+    )
+
+
+def _trace(x: np.ndarray, y: np.ndarray, faces: np.ndarray, n_glass: np.ndarray) -> PrismTrace:
+    """Trace lens coordinates (N,) through prisms ``faces`` (K, 8), ``n_glass`` (K,):
+    one prism for all rays (K = 1) or one per ray (K = N); see ``_prism_kernels``."""
+    x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1)
+    y = np.ascontiguousarray(y, dtype=np.float64).reshape(-1)
+    origins = np.empty((x.size, 3))
+    directions = np.empty((x.size, 3))
+    status = np.empty(x.size, dtype=STATUS_DTYPE)
+    _prism_kernels.trace_rays(
+        x, y, np.ascontiguousarray(faces, dtype=np.float64),
+        np.ascontiguousarray(n_glass, dtype=np.float64), origins, directions, status,
+    )  # fmt: skip
+    return PrismTrace(origins, directions, status)
 
 
 class RaytraceModel(CameraModel):
@@ -92,14 +125,19 @@ class RaytraceModel(CameraModel):
         super().__post_init__()
         object.__setattr__(self, "_cache", {})
 
-    def _check(self) -> None:
-        if self.fx <= 0 or self.fy <= 0:
-            raise ValueError("focal lengths must be positive")
-        if self.n_glass <= 1.0:
-            raise ValueError("the glass index must exceed 1")
-        for face in ("rear", "left", "right"):
-            if getattr(self, f"{face}_d") <= 0:
-                raise ValueError(f"the {face} face must lie in front of the lens (d > 0)")
+    @classmethod
+    def _constraints(cls, params):
+        def col(name):
+            return cls.column(params, name)
+
+        return [
+            ((col("fx") > 0) & (col("fy") > 0), "focal lengths must be positive"),
+            (col("n_glass") > 1.0, "the glass index must exceed 1"),
+            *(
+                (col(f"{face}_d") > 0, f"the {face} face must lie in front of the lens (d > 0)")
+                for face in ("rear", "left", "right")
+            ),
+        ]
 
     # ----- geometry -------------------------------------------------------------------
     def face(self, name: str) -> tuple[np.ndarray, float]:
@@ -115,9 +153,7 @@ class RaytraceModel(CameraModel):
         half = Half.parse(half)
         key = ("faces", half)
         if key not in self._cache:
-            rear, d_rear = self.face("rear")
-            front, d_front = self.face(half.label)
-            self._cache[key] = np.array([*rear, d_rear, *front, d_front])
+            self._cache[key] = _faces(self.params, half)
         return self._cache[key]
 
     def trace(self, x: np.ndarray, y: np.ndarray, half: Half) -> PrismTrace:
@@ -143,24 +179,23 @@ class RaytraceModel(CameraModel):
         (``eta = 1/n_glass``) -> the half's front face, refract glass to air
         (``eta = n_glass``); SPEC 4.2.
         """
-        x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1)
-        y = np.ascontiguousarray(y, dtype=np.float64).reshape(-1)
-        origins = np.empty((x.size, 3))
-        directions = np.empty((x.size, 3))
-        status = np.empty(x.size, dtype=STATUS_DTYPE)
-        _prism_kernels.trace_rays(
-            x, y, self.faces_array(half), self.n_glass, origins, directions, status
-        )
-        return PrismTrace(origins, directions, status)
+        return _trace(x, y, self.faces_array(half)[None], np.array([self.n_glass]))
 
     def _rays(self, pixels, half):
+        return self._rays_rows(pixels, half, self.params[None])
+
+    def _rays_rows(self, pixels, half, params):
+        """Rays with a parameter vector per pixel (N, 19), or one for all (1, 19)."""
+        one = params.shape[0] == 1
+        p = dict(zip(self.PARAM_NAMES, params[0] if one else params.T, strict=True))
         und = undistort(
-            (pixels[:, 0] - self.cx) / self.fx,
-            (pixels[:, 1] - self.cy) / self.fy,
-            self._lens_coeffs(),
-            UNDISTORT_TOL_PX / max(self.fx, self.fy),
+            (pixels[:, 0] - p["cx"]) / p["fx"],
+            (pixels[:, 1] - p["cy"]) / p["fy"],
+            (p["k1"], p["k2"], p["p1"], p["p2"], p["k3"]),
+            UNDISTORT_TOL_PX / np.maximum(p["fx"], p["fy"]),
         )
-        traced = self.trace(und.x, und.y, half)
+        faces = self.faces_array(half)[None] if one else _faces(params, half)
+        traced = _trace(und.x, und.y, faces, np.atleast_1d(p["n_glass"]))
         status = np.where(und.converged, traced.status, Status.NOT_CONVERGED)
         return traced.origins, traced.directions, status.astype(STATUS_DTYPE)
 

@@ -151,13 +151,19 @@ class _RayJet(NamedTuple):
 
 
 def _trace_jets(
-    model: CameraModel, x: np.ndarray, half: Half, refresh: np.ndarray, previous: _RayJet | None
+    model: CameraModel,
+    x: np.ndarray,
+    half: Half,
+    refresh: np.ndarray,
+    previous: _RayJet | None,
+    params: np.ndarray | None,
 ) -> _RayJet:
     """Rays at pixels ``x`` (N, 2) in one batched backward trace.
 
     Where ``refresh`` is True the two forward-difference neighbours are traced too and
     the derivatives renewed; elsewhere the derivatives of ``previous`` are kept (a
-    chord step: they were taken less than ``JET_REFRESH_PX`` away).
+    chord step: they were taken less than ``JET_REFRESH_PX`` away). ``params`` (N, P):
+    a parameter vector per pixel, or None for the model's own.
     """
     n = x.shape[0]
     fresh = np.flatnonzero(refresh)
@@ -165,7 +171,9 @@ def _trace_jets(
     neighbours = np.repeat(x[fresh, None, :], 2, axis=1)
     neighbours[:, 0, 0] += h[:, 0]
     neighbours[:, 1, 1] += h[:, 1]
-    r = model.rays(np.concatenate([x, neighbours.reshape(-1, 2)]), half)
+    if params is not None:
+        params = np.concatenate([params, np.repeat(params[fresh], 2, axis=0)])
+    r = model.rays(np.concatenate([x, neighbours.reshape(-1, 2)]), half, params)
     o, d = r.origins[:n], r.directions[:n]
     status = r.status[:n].copy()
     if previous is None:
@@ -232,6 +240,7 @@ def triangulate(
     method: str = "ml",
     *,
     reproject: bool = True,
+    params: np.ndarray | None = None,
 ) -> Triangulation:
     """Triangulate correspondences between the left and right halves.
 
@@ -248,6 +257,11 @@ def triangulate(
     reproject : bool
         For ``'midpoint'`` only: project the midpoints to fill ``rms`` and the pixel
         fields (costs one forward projection per half). ``'ml'`` gets them for free.
+    params : ndarray, shape (..., P), optional
+        A parameter vector of the model's kind per correspondence (the leading shape
+        of the pixels) instead of the model's own: triangulates under many models in
+        one batched solve, e.g. the sigma points of a calibration covariance. Not
+        with ``'midpoint'`` and ``reproject``. Invalid vectors give ``INVALID_INPUT``.
 
     Returns
     -------
@@ -271,10 +285,19 @@ def triangulate(
     shape = ql.shape[:-1]
     ql = ql.reshape(-1, 2)
     qr = qr.reshape(-1, 2)
+    if params is not None:
+        params = np.asarray(params, dtype=np.float64)
+        if params.shape != (*shape, model.params.size):
+            raise ValueError(
+                f"params must have shape {(*shape, model.params.size)}, got {params.shape}"
+            )
+        params = params.reshape(-1, model.params.size)
+        if method == "midpoint" and reproject:
+            raise ValueError("per-correspondence params need reproject=False with 'midpoint'")
     if method == "midpoint":
-        out = _midpoint(model, ql, qr, reproject)
+        out = _midpoint(model, ql, qr, reproject, params)
     else:
-        out = _maximum_likelihood(model, ql, qr)
+        out = _maximum_likelihood(model, ql, qr, params)
     return Triangulation(
         out.points.reshape(*shape, 3),
         out.status.reshape(shape),
@@ -290,10 +313,10 @@ def _rms(ql, qr, fl, fr) -> np.ndarray:
     return np.sqrt((np.sum((fl - ql) ** 2, axis=-1) + np.sum((fr - qr) ** 2, axis=-1)) / 2.0)
 
 
-def _midpoint(model, ql, qr, reproject) -> Triangulation:
+def _midpoint(model, ql, qr, reproject, params) -> Triangulation:
     n = ql.shape[0]
-    rl = model.rays(ql, Half.LEFT)
-    rr = model.rays(qr, Half.RIGHT)
+    rl = model.rays(ql, Half.LEFT, params)
+    rr = model.rays(qr, Half.RIGHT, params)
     points, gap, status = _intersection(rl.origins, rl.directions, rr.origins, rr.directions)
     status = _first_failure(rl.status, rr.status, status)
     bad = status != Status.OK
@@ -310,7 +333,7 @@ def _midpoint(model, ql, qr, reproject) -> Triangulation:
     return Triangulation(points, status, gap, rms, fl, fr, np.zeros(n, dtype=np.int64))
 
 
-def _maximum_likelihood(model, ql, qr) -> Triangulation:
+def _maximum_likelihood(model, ql, qr, params) -> Triangulation:
     n = ql.shape[0]
     x_obs = np.concatenate([ql, qr], axis=1)  # (N, 4): u_L, v_L, u_R, v_R
     x = x_obs.copy()
@@ -326,8 +349,9 @@ def _maximum_likelihood(model, ql, qr) -> Triangulation:
         if active.size == 0:
             break
         xa = x[active]
-        jl = _trace_jets(model, xa[:, :2], Half.LEFT, refresh, jl)
-        jr = _trace_jets(model, xa[:, 2:], Half.RIGHT, refresh, jr)
+        pa = None if params is None else params[active]
+        jl = _trace_jets(model, xa[:, :2], Half.LEFT, refresh, jl, pa)
+        jr = _trace_jets(model, xa[:, 2:], Half.RIGHT, refresh, jr, pa)
         trace_status = _first_failure(jl.status, jr.status)
         if it == 0:
             # The rays of the observed pixels: their gap is the consistency figure.

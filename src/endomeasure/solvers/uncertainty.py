@@ -678,10 +678,12 @@ class MeasurementFunction:
 
     Notes
     -----
-    Calling it with ``X`` of shape ``(..., L)`` triangulates every distinct pixel pair
-    once (the UT's sigma points repeat most of them) in one call per distinct
-    parameter vector, and returns values of shape ``(...)``, NaN where a point fails
-    or the parameter vector is not a valid model.
+    Calling it with ``X`` of shape ``(..., L)`` triangulates every distinct pair of
+    pixels and parameter vector once (the UT's sigma points repeat most of them), all
+    in one batched solve with a parameter vector per correspondence
+    (:func:`~endomeasure.solvers.triangulate.triangulate`'s ``params``), and returns
+    values of shape ``(...)``, NaN where a point fails or the parameter vector is not a
+    valid model.
     """
 
     def __init__(
@@ -722,13 +724,22 @@ class MeasurementFunction:
         params = np.broadcast_to(self.model.params[self.free], (*lead, self.free.size))
         return np.concatenate([pix, params], axis=-1)
 
-    def _points(self, model, corr: np.ndarray) -> np.ndarray:
-        """Triangulate distinct rows of ``corr`` (R, 4); NaN rows where not OK."""
-        rows = np.ascontiguousarray(corr)
-        key = rows.view(np.dtype((np.void, rows.dtype.itemsize * 4))).reshape(-1)
+    def _points(self, corr: np.ndarray, params: np.ndarray | None) -> np.ndarray:
+        """Triangulate the distinct rows of ``corr`` (R, 4) under the model, or each under
+        its own parameter vector ``params`` (R, P), in one batched solve; NaN rows where
+        not OK."""
+        rows = corr if params is None else np.concatenate([corr, params[:, self.free]], axis=1)
+        rows = np.ascontiguousarray(rows)
+        key = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).reshape(-1)
         _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-        uniq = rows[first]
-        tri = triangulate(model, uniq[:, :2], uniq[:, 2:], self.method, reproject=False)
+        tri = triangulate(
+            self.model,
+            corr[first, :2],
+            corr[first, 2:],
+            self.method,
+            reproject=False,
+            params=None if params is None else params[first],
+        )
         pts = np.where((tri.status == Status.OK)[:, None], tri.points, np.nan)
         return pts[inverse.reshape(-1)]
 
@@ -737,26 +748,13 @@ class MeasurementFunction:
         lead = X.shape[:-1]
         flat = X.reshape(-1, X.shape[-1])
         n = self.n_points
-        corr = flat[:, : 4 * n].reshape(-1, n, 4)
-        out = np.full(flat.shape[0], np.nan)
-        if self.free.size == 0:
-            groups = [(self.model, np.arange(flat.shape[0]))]
-        else:
-            pv = np.ascontiguousarray(flat[:, 4 * n :])
-            uniq, inverse = np.unique(pv, axis=0, return_inverse=True)
-            inverse = inverse.reshape(-1)
-            order = np.argsort(inverse, kind="stable")
-            bounds = np.searchsorted(inverse[order], np.arange(uniq.shape[0] + 1))
-            groups = []
-            for g in range(uniq.shape[0]):
-                rows = order[bounds[g] : bounds[g + 1]]
-                params = self.model.params.copy()
-                params[self.free] = uniq[g]
-                try:
-                    groups.append((self.model.with_params(params), rows))
-                except ValueError:
-                    continue  # not a valid model (e.g. n_glass <= 1): NaN values
-        for model, rows in groups:
-            pts = self._points(model, corr[rows].reshape(-1, 4)).reshape(rows.size, n, 3)
-            out[rows] = self.formula(pts)
-        return out.reshape(lead)
+        corr = flat[:, : 4 * n].reshape(-1, 4)
+        params = None
+        if self.free.size:
+            # every input row is a model: its parameter vector goes with each of its points
+            # (invalid vectors, e.g. n_glass <= 1, give NaN points and so NaN values)
+            params = np.repeat(np.asarray(self.model.params)[None], flat.shape[0], axis=0)
+            params[:, self.free] = flat[:, 4 * n :]
+            params = np.repeat(params, n, axis=0)
+        pts = self._points(corr, params).reshape(flat.shape[0], n, 3)
+        return self.formula(pts).reshape(lead)

@@ -1,0 +1,265 @@
+"""Formal precision of the point-symmetric corner fit: each corner's covariance from image noise.
+
+:func:`endomeasure.features.subpixel.symmetric_corners` finds a corner ``c`` (and a
+relative illumination gradient ``k``) by weighted least squares on the residuals::
+
+    r_m = I(c + s_m + h_m) - I(c + s_m - h_m) - (k . h_m) (I(c + s_m + h_m) + I(c + s_m - h_m))
+
+``I`` the cubic B-spline interpolant of the image. To first order in the image noise
+``n`` the solution moves by ``d theta = -N^-1 J^T W d r`` (``theta = (c, k)``, ``J`` the
+Jacobian of the residuals at the solution, ``W`` the window weights, ``N = J^T W J``),
+and ``d r = D n`` is linear in the pixel noise: every residual is a difference of two
+interpolated samples, each a weighted sum of many pixels (the interpolating spline's
+prefilter spreads a pixel over its neighbours). So::
+
+    Cov(c) = [N^-1 J^T W D] Sigma_n [N^-1 J^T W D]^T    (the (u, v) block)
+
+a sandwich, not ``sigma^2 N^-1``: the residuals are neither independent nor of equal
+variance, and the weights are not inverse variances. :func:`symmetric_precision`
+evaluates it exactly for a diagonal pixel covariance ``Sigma_n`` (independent pixel
+noise, constant or per pixel): the two rows of ``N^-1 J^T W`` are spread onto the spline
+coefficients with the interpolation weights of every sample (the transpose of
+sampling), then onto the pixels by the spline prefilter (the inverse of a symmetric
+convolution, so its own transpose away from the box edges).
+
+What it cannot see: errors that do not come from pixel noise (the detector's bias, the
+renderer's approximations, a blur that is not point-symmetric), and the noise of the
+start points through the window and curvature estimates (second order for the fit).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from endomeasure.features.subpixel import (
+    SYMMETRY_SIGMA_SQUARES,
+    symmetric_problem,
+    symmetric_system,
+)
+from endomeasure.interpolation import PREFILTER_MARGIN_PX, bspline_weights
+
+__all__ = ["CornerPrecision", "interpolation_noise_gain", "symmetric_precision"]
+
+# Half length of the impulse whose spline interpolant gives the noise gain: the cardinal
+# cubic spline decays as 0.268^d, below 1e-8 of its peak after 15 px.
+_KERNEL_HALF_LENGTH = 15
+
+
+@dataclasses.dataclass(frozen=True)
+class CornerPrecision:
+    """Per-corner formal precision of the symmetric fit.
+
+    Attributes
+    ----------
+    covariance : ndarray, shape (n, 2, 2), px^2
+        Covariance of (u, v); NaN where the fit is singular.
+    noise_variance : ndarray, shape (n,), grey levels^2
+        The pixel noise variance used (the window's weighted mean for a per-pixel map,
+        the residual estimate for ``noise=None``).
+    """
+
+    covariance: np.ndarray
+    noise_variance: np.ndarray
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """ndarray, shape (n, 2), px: standard deviations of u and v."""
+        return np.sqrt(np.diagonal(self.covariance, axis1=1, axis2=2))
+
+    @property
+    def corr_uv(self) -> np.ndarray:
+        """ndarray, shape (n,): correlation of the u and v errors."""
+        s = self.sigma
+        return self.covariance[:, 0, 1] / (s[:, 0] * s[:, 1])
+
+
+def interpolation_noise_gain(frac: np.ndarray) -> np.ndarray:
+    """Variance of the cubic-spline interpolant of unit white noise at sub-pixel phase.
+
+    Parameters
+    ----------
+    frac : ndarray, shape (...,)
+        Sub-pixel phase along one axis (0 at a pixel centre).
+
+    Returns
+    -------
+    ndarray, shape (...,)
+        ``sum_j K(frac - j)^2`` with ``K`` the cardinal cubic spline: 1 at a pixel,
+        0.756 half-way between pixels. A 2-D sample's gain is the product of its
+        two axes' gains.
+    """
+    from scipy.ndimage import spline_filter1d
+
+    impulse = np.zeros(2 * _KERNEL_HALF_LENGTH + 1)
+    impulse[_KERNEL_HALF_LENGTH] = 1.0
+    kernel_coeffs = spline_filter1d(impulse, order=3, mode="mirror")
+    frac = np.asarray(frac, dtype=np.float64)
+    base = np.floor(frac)
+    weights = bspline_weights(frac - base)[0].astype(np.float64)  # (..., 4) taps -1..2
+    # K(frac - j) for every shift j: the interpolant of the impulse centred at j
+    centre = _KERNEL_HALF_LENGTH + base.astype(int)
+    shifts = np.arange(-_KERNEL_HALF_LENGTH + 2, _KERNEL_HALF_LENGTH - 1)
+    idx = centre[..., None, None] - shifts[:, None] + np.arange(-1, 3)
+    values = np.sum(weights[..., None, :] * kernel_coeffs[np.clip(idx, 0, impulse.size - 1)], -1)
+    return np.sum(values**2, axis=-1)
+
+
+def symmetric_precision(
+    gray: np.ndarray,
+    pixels: np.ndarray,
+    steps: np.ndarray,
+    curvature: np.ndarray | None = None,
+    *,
+    noise: float | np.ndarray | None = None,
+    sigma_squares: float = SYMMETRY_SIGMA_SQUARES,
+    illumination: bool = True,
+) -> CornerPrecision:
+    """Formal covariance of corners refined by the point-symmetric fit.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (height, width)
+        The grey image the corners were refined in (the half image for split images,
+        as the detector sees it).
+    pixels : ndarray, shape (n, 2), px
+        Refined corners (the fit's solution) in ``gray``'s pixel coordinates.
+    steps : ndarray, shape (n, 2, 2), px
+        The local affine map the fit used (:func:`~endomeasure.features.subpixel.local_steps`
+        or :func:`~endomeasure.features.subpixel.local_quadratic`).
+    curvature : ndarray, shape (n, 2, 3), px, optional
+        The local curvature the fit used (:func:`~endomeasure.features.subpixel.local_quadratic`);
+        None for plain 180-degree pairs.
+    noise : float or ndarray, optional
+        Pixel noise: a variance in grey levels^2 for every pixel, or an array of shape
+        ``gray.shape`` with each pixel's variance (e.g. a sensor model's shot + read +
+        quantisation variance). None estimates one variance per corner from the fit's
+        weighted residuals (which then also carry any misfit of the model).
+    sigma_squares : float
+        The fit's window sigma in squares.
+    illumination : bool
+        Whether the fit estimated the illumination gradient ``k`` (the detector does).
+
+    Returns
+    -------
+    CornerPrecision
+        ``covariance`` (n, 2, 2) px^2, with ``sigma`` and ``corr_uv``.
+
+    Notes
+    -----
+    ``k`` at the solution is re-estimated by weighted least squares at the given ``c``
+    (the residual is linear in ``k``), so only the corners are needed. With ``A`` the
+    (u, v) rows of ``N^-1 J^T W`` (``N = J^T W J`` over the 4 unknowns, so ``k``'s
+    estimation is accounted for), a residual's sample at ``x`` enters with weight
+    ``A_m (1 -+ k.h_m)``; the weights are scattered onto the B-spline coefficients with
+    the sample's interpolation weights and mapped to pixels by the prefilter ``B^-1``:
+    ``g = B^-1 S^T a``, and ``Cov = sum_pixels var * g g^T``.
+
+    With ``noise=None`` the variance is ``sum w r^2 / sum w v (1 - w l)``, ``v`` the
+    variance of a unit-noise residual (the two samples' interpolation gains,
+    :func:`interpolation_noise_gain`, their correlation neglected) and ``l`` its leverage
+    ``(J N^-1 J^T)_mm``.
+    """
+    from scipy.ndimage import spline_filter1d
+
+    gray = np.asarray(gray)
+    c = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    steps = np.asarray(steps, dtype=np.float64)
+    n = len(c)
+    if steps.shape != (n, 2, 2):
+        raise ValueError(f"steps must have shape ({n}, 2, 2), not {steps.shape}")
+    problem = symmetric_problem(gray, c, steps, curvature, sigma_squares)
+    weights = problem.weights  # (n, M)
+    offsets = problem.window.offsets  # (M, 2)
+    hx, hy = offsets[:, 0], offsets[:, 1]
+
+    k = None
+    if illumination:
+        _, _, plus, minus = symmetric_system(problem, c, None)
+        total = plus + minus
+        design = np.stack([hx[None] * total, hy[None] * total], axis=-1)  # (n, M, 2)
+        wd = design * weights[..., None]
+        k_normal = wd.transpose(0, 2, 1) @ design
+        ridge = 1e-12 * np.trace(k_normal, axis1=1, axis2=2)[:, None, None] + 1e-300
+        k_rhs = wd.transpose(0, 2, 1) @ (plus - minus)[..., None]
+        k = np.linalg.solve(k_normal + ridge * np.eye(2), k_rhs)[..., 0]
+    residual, jacobian, _, _ = symmetric_system(problem, c, k)
+    weighted = jacobian * weights[..., None]
+    normal = weighted.transpose(0, 2, 1) @ jacobian  # (n, p, p)
+    finite = np.isfinite(normal).all(axis=(1, 2))
+    finite[finite] &= np.linalg.matrix_rank(normal[finite]) == normal.shape[-1]
+    inverse = np.full_like(normal, np.nan)
+    inverse[finite] = np.linalg.inv(normal[finite])
+    gain_rows = (inverse @ weighted.transpose(0, 2, 1))[:, :2]  # (n, 2, M): d c / d r_m
+
+    # sample positions and their weights in the residual
+    shift = problem.shift if problem.shift is not None else np.zeros((n, len(offsets), 2))
+    centre = c[:, None] + shift  # (n, M, 2)
+    tilt = np.zeros_like(weights) if k is None else k[:, :1] * hx[None] + k[:, 1:] * hy[None]
+    points = np.concatenate([centre + offsets[None], centre - offsets[None]], axis=1)
+    factor = np.concatenate([1.0 - tilt, -(1.0 + tilt)], axis=1)  # (n, 2M)
+    sample_weights = np.concatenate([gain_rows, gain_rows], axis=2) * factor[:, None]
+
+    # per-corner coefficient patches around the rounded corner
+    reach = np.abs(points - np.round(c)[:, None]).max(initial=0.0) if n else 0.0
+    half = int(np.ceil(reach)) + 2 + PREFILTER_MARGIN_PX
+    size = 2 * half + 1
+    corner0 = np.round(c).astype(int) - half  # (n, 2) patch origin (u, v)
+    local = points - corner0[:, None]
+    base = np.floor(local).astype(int)
+    wu = bspline_weights(local[..., 0] - base[..., 0])[0].astype(np.float64)  # (n, 2M, 4)
+    wv = bspline_weights(local[..., 1] - base[..., 1])[0].astype(np.float64)
+    taps = np.arange(-1, 3)
+    rows = base[..., 1, None, None] + taps[:, None]  # (n, 2M, 4, 1)
+    cols = base[..., 0, None, None] + taps[None, :]  # (n, 2M, 1, 4)
+    spread = wv[..., :, None] * wu[..., None, :]  # (n, 2M, 4, 4)
+    patches = np.zeros((n, 2, size, size))
+    corner_idx = np.arange(n)[:, None, None, None]
+    rows_b, cols_b = np.broadcast_arrays(rows, cols)
+    for axis in range(2):
+        values = np.nan_to_num(sample_weights[:, axis, :, None, None] * spread)
+        np.add.at(patches[:, axis], (corner_idx, rows_b, cols_b), values)
+    # B^-T = B^-1 away from the patch edges (a symmetric convolution's inverse)
+    for axis in (2, 3):
+        patches = spline_filter1d(patches, order=3, axis=axis, mode="mirror")
+
+    if noise is None:
+        variance = _residual_variance(residual, jacobian, weights, inverse, points)
+        pixel_var = variance[:, None, None]
+    elif np.ndim(noise) == 0:
+        variance = np.full(n, float(noise))
+        pixel_var = variance[:, None, None]
+    else:
+        noise = np.asarray(noise, dtype=np.float64)
+        if noise.shape != gray.shape:
+            raise ValueError(f"noise must be a scalar or of shape {gray.shape}, not {noise.shape}")
+        height, width = noise.shape
+        span = np.arange(size)
+        vv = np.clip(corner0[:, 1, None] + span, 0, height - 1)
+        uu = np.clip(corner0[:, 0, None] + span, 0, width - 1)
+        pixel_var = noise[vv[:, :, None], uu[:, None, :]]  # (n, size, size)
+        influence = patches[:, 0] ** 2 + patches[:, 1] ** 2
+        variance = np.sum(pixel_var * influence, axis=(1, 2)) / np.maximum(
+            np.sum(influence, axis=(1, 2)), 1e-300
+        )
+    covariance = np.einsum("nayx,nbyx,nyx->nab", patches, patches, pixel_var * np.ones((1, size, size)))
+    covariance[~finite] = np.nan
+    return CornerPrecision(covariance, variance)
+
+
+def _residual_variance(
+    residual: np.ndarray,
+    jacobian: np.ndarray,
+    weights: np.ndarray,
+    inverse: np.ndarray,
+    points: np.ndarray,
+) -> np.ndarray:
+    """Pixel noise variance per corner from the weighted residuals of the fit, (n,)."""
+    m = residual.shape[1]
+    frac = points - np.floor(points)
+    gain = interpolation_noise_gain(frac[..., 0]) * interpolation_noise_gain(frac[..., 1])
+    unit = gain[:, :m] + gain[:, m:]  # variance of a residual under unit pixel noise
+    leverage = np.einsum("nmp,npq,nmq->nm", jacobian, inverse, jacobian) * weights
+    expected = np.sum(weights * unit * (1.0 - leverage), axis=1)
+    return np.sum(weights * residual**2, axis=1) / np.maximum(expected, 1e-300)
