@@ -243,7 +243,9 @@ def symmetric_precision(
         variance = np.sum(pixel_var * influence, axis=(1, 2)) / np.maximum(
             np.sum(influence, axis=(1, 2)), 1e-300
         )
-    covariance = np.einsum("nayx,nbyx,nyx->nab", patches, patches, pixel_var * np.ones((1, size, size)))
+    covariance = np.einsum(
+        "nayx,nbyx,nyx->nab", patches, patches, pixel_var * np.ones((1, size, size))
+    )
     covariance[~finite] = np.nan
     return CornerPrecision(covariance, variance)
 
