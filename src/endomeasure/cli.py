@@ -844,10 +844,10 @@ def predict_error(
     if session is None and not (map_mode and model_file is not None):
         raise BadInputError("a session is needed (only --map --model-file works without one)")
     console = _stderr_console()
-    # the noise assumptions every mode shares
     from endomeasure.pipeline.measure import parse_sigma
+    from endomeasure.pipeline.predict import NoiseAssumptions
 
-    noise = dict(
+    noise = NoiseAssumptions(
         sigma=parse_sigma(sigma),
         rho_images=rho_images,
         rho_points=rho_points,
@@ -858,13 +858,7 @@ def predict_error(
     if board_test:
         from endomeasure.pipeline.predict import predict_board_test
 
-        report = predict_board_test(
-            session,
-            model,
-            **noise,
-            zone_mm=zone_mm,
-            plot=plot,
-        )
+        report = predict_board_test(session, model, noise, zone_mm=zone_mm, plot=plot)
         if json_output:
             _print_json(report.to_dict())
             return
@@ -873,11 +867,7 @@ def predict_error(
     if measurement is not None:
         from endomeasure.pipeline.predict import predict_stored_measurement
 
-        r = predict_stored_measurement(
-            session,
-            measurement,
-            **noise,
-        )
+        r = predict_stored_measurement(session, measurement, noise)
         if json_output:
             _print_json(r.to_dict())
             return
@@ -906,7 +896,7 @@ def predict_error(
         size_mm=size_mm,
         depths=depths,
         grid=(n_u, n_v),
-        **noise,
+        noise=noise,
         plot=plot,
         csv=csv,
     )

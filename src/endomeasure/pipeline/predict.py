@@ -43,6 +43,7 @@ __all__ = [
     "BoardPredictionReport",
     "MapReport",
     "MeasurementPredictionReport",
+    "NoiseAssumptions",
     "predict_board_test",
     "predict_map",
     "predict_stored_measurement",
@@ -59,33 +60,72 @@ paper's probe (SPEC section 2)."""
 PREDICTION_RECORD = "prediction"
 
 
-def _check_rho(rho_images: float, rho_points: float) -> None:
-    for name, rho in (("rho-images", rho_images), ("rho-points", rho_points)):
-        if not (math.isfinite(rho) and -1.0 <= rho <= 1.0):
-            raise BadInputError(f"--{name} must lie in [-1, 1], not {rho}")
+@dataclasses.dataclass(frozen=True)
+class NoiseAssumptions:
+    """What a prediction assumes about its inputs and how it propagates them: the
+    choices the three modes share (``--sigma``, ``--rho-images``, ``--rho-points``,
+    ``--method``, ``--no-calibration``, ``--samples``).
 
+    Attributes
+    ----------
+    sigma : float, (float, float) or None
+        Image noise, px: one number, or u and v; None takes the calibrated model's
+        residual sigma.
+    rho_images, rho_points : float
+        Correlations of one point's errors in the two halves, and of different points'.
+    method : {'ut', 'linear', 'mc'}
+    calibration : bool
+        Whether the calibration covariance joins the input (when the model has one).
+    n_samples : int or None
+        Monte Carlo samples (``mc`` only; default 20,000).
+    seed : int
+        Monte Carlo seed.
+    """
 
-def _sigma(given, cm, what: str) -> tuple[float | tuple[float, float], str]:
-    """The image noise to use: ``given`` (one number, or a pair for u and v, px) or the
-    model's calibration-residual sigma."""
-    if given is not None:
-        return checked_sigma(given), "given"
-    if cm is None or cm.sigma_px is None:
-        raise BadInputError(
-            f"{what} carries no calibration residuals to estimate the image noise",
-            hint="give --sigma PX (or U,V)",
+    sigma: float | tuple[float, float] | None = None
+    rho_images: float = 0.0
+    rho_points: float = 0.0
+    method: str = "ut"
+    calibration: bool = True
+    n_samples: int | None = None
+    seed: int = 0
+
+    def __post_init__(self):
+        from endomeasure.solvers.uncertainty import METHODS
+
+        for name, rho in (("rho-images", self.rho_images), ("rho-points", self.rho_points)):
+            if not (math.isfinite(rho) and -1.0 <= rho <= 1.0):
+                raise BadInputError(f"--{name} must lie in [-1, 1], not {rho}")
+        if self.method not in METHODS:
+            raise BadInputError(
+                f"unknown method {self.method!r}", hint=f"use one of {', '.join(METHODS)}"
+            )
+
+    def sigma_px(self, cm, what: str) -> tuple[float | tuple[float, float], str]:
+        """The image noise to use and where it comes from: the given sigma, or the
+        calibrated model ``cm``'s residual sigma (``what`` names it in the error)."""
+        if self.sigma is not None:
+            return checked_sigma(self.sigma), "given"
+        if cm is None or cm.sigma_px is None:
+            raise BadInputError(
+                f"{what} carries no calibration residuals to estimate the image noise",
+                hint="give --sigma PX (or U,V)",
+            )
+        return cm.sigma_px, "calibration residuals"
+
+    def propagation(self, sigma_px, param_cov) -> dict[str, Any]:
+        """Keyword arguments of the predictors (:mod:`endomeasure.measure.predict`)."""
+        options: dict[str, Any] = {}
+        if self.method == "mc":
+            options = {"n_samples": int(self.n_samples or 20_000), "seed": int(self.seed)}
+        return dict(
+            sigma=sigma_px,
+            rho_images=self.rho_images,
+            rho_points=self.rho_points,
+            param_cov=param_cov if self.calibration else None,
+            method=self.method,
+            **options,
         )
-    return cm.sigma_px, "calibration residuals"
-
-
-def _options(method: str, n_samples: int | None, seed: int) -> dict[str, Any]:
-    from endomeasure.solvers.uncertainty import METHODS
-
-    if method not in METHODS:
-        raise BadInputError(f"unknown method {method!r}", hint=f"use one of {', '.join(METHODS)}")
-    if method == "mc":
-        return {"n_samples": int(n_samples or 20_000), "seed": int(seed)}
-    return {}
 
 
 # ----- board test --------------------------------------------------------------------------------
@@ -185,19 +225,12 @@ def _board_pixels(model, board: str, ids, xyz, ql, qr):
     return out[0], out[1]
 
 
-def board_predictions(
-    bt,
-    model,
-    *,
-    sigma,
-    rho_images=0.0,
-    rho_points=0.0,
-    param_cov=None,
-    method="ut",
-    at="board",
-    **options,
-) -> dict[str, np.ndarray]:
+def board_predictions(bt, model, *, at="board", **propagation) -> dict[str, np.ndarray]:
     """Predicted bias, std and its parts for every row of a board test's table.
+
+    ``propagation``: the noise and method keywords of
+    :func:`~endomeasure.measure.predict.predict_measurement_error` (``sigma``,
+    ``rho_images``, ``rho_points``, ``param_cov``, ``method``, ...).
 
     ``at='board'`` predicts at the pixels of the ideal board at its estimated pose
     (:func:`_board_pixels`), ``at='detections'`` at the detected pixels. The first is the
@@ -229,18 +262,7 @@ def board_predictions(
         if rows.size == 0:
             continue
         ql, qr = stencil_pixels(t, images, kind)
-        pred = predict_measurement_error(
-            model,
-            measure_kind,
-            ql,
-            qr,
-            sigma=sigma,
-            rho_images=rho_images,
-            rho_points=rho_points,
-            param_cov=param_cov,
-            method=method,
-            **options,
-        )
+        pred = predict_measurement_error(model, measure_kind, ql, qr, **propagation)
         out["bias"][rows] = pred.bias
         out["std"][rows] = pred.std
         out["value"][rows] = pred.value
@@ -248,7 +270,7 @@ def board_predictions(
             out["std_image"][rows] = pred.parts["image"][1]
         if "calibration" in pred.parts:
             out["std_calibration"][rows] = pred.parts["calibration"][1]
-        elif param_cov is None:
+        elif propagation.get("param_cov") is None:
             out["std_image"][rows] = pred.std
     return out
 
@@ -256,23 +278,16 @@ def board_predictions(
 def predict_board_test(
     session: str | Path,
     model: str = "raytrace",
+    noise: NoiseAssumptions = NoiseAssumptions(),  # noqa: B008 (immutable)
     *,
-    sigma: float | tuple[float, float] | None = None,
-    rho_images: float = 0.0,
-    rho_points: float = 0.0,
-    method: str = "ut",
-    calibration: bool = True,
     zone_mm: float | None = None,
-    n_samples: int | None = None,
-    seed: int = 0,
     plot: str | Path | None = None,
     store: bool = True,
 ) -> BoardPredictionReport:
     """Predicted vs actual board-test errors per board, kind and zone (the paper's Fig. 5).
 
     Uses the session's stored board test of ``model`` (running it first if there is
-    none). ``calibration=False`` leaves the calibration covariance out (image noise
-    only). Stores a ``prediction`` record named ``board-test-<model>``.
+    none). Stores a ``prediction`` record named ``board-test-<model>``.
     """
     from endomeasure.io.session import Record, edit_session, open_session
     from endomeasure.pipeline.measure import (
@@ -283,8 +298,6 @@ def predict_board_test(
         load_calibrated_model,
     )
 
-    _check_rho(rho_images, rho_points)
-    options = _options(method, n_samples, seed)
     with open_session(session) as reader:
         cm = load_calibrated_model(reader, model, session)
         stored = model in reader.record_names(BOARD_TEST_RECORD)
@@ -294,18 +307,8 @@ def predict_board_test(
     zone = float(zone_mm) if zone_mm is not None else DEFAULT_ZONE_MM
     if not (math.isfinite(zone) and zone > 0):
         raise BadInputError(f"the zone width must be a positive number of mm, not {zone}")
-    sigma_px, source = _sigma(sigma, cm, f"model {model!r}")
-    param_cov = cm.param_cov if calibration else None
-    pred = board_predictions(
-        bt,
-        cm.model,
-        sigma=sigma_px,
-        rho_images=rho_images,
-        rho_points=rho_points,
-        param_cov=param_cov,
-        method=method,
-        **options,
-    )
+    sigma_px, source = noise.sigma_px(cm, f"model {model!r}")
+    pred = board_predictions(bt, cm.model, **noise.propagation(sigma_px, cm.param_cov))
     zones = _zone_rows(
         bt, pred["bias"], pred["std"], pred["std_image"], pred["std_calibration"], zone
     )
@@ -321,12 +324,12 @@ def predict_board_test(
     report = BoardPredictionReport(
         str(session),
         model,
-        method,
+        noise.method,
         sigma_px,
         source,
-        float(rho_images),
-        float(rho_points),
-        calibration,
+        float(noise.rho_images),
+        float(noise.rho_points),
+        noise.calibration,
         zone,
         zones,
         within,
@@ -342,12 +345,12 @@ def predict_board_test(
                     attrs={
                         "mode": "board-test",
                         "model": model,
-                        "method": method,
+                        "method": noise.method,
                         "sigma_px": sigma_px,
                         "sigma_source": source,
-                        "rho_images": float(rho_images),
-                        "rho_points": float(rho_points),
-                        "calibration": bool(calibration),
+                        "rho_images": float(noise.rho_images),
+                        "rho_points": float(noise.rho_points),
+                        "calibration": bool(noise.calibration),
                         "zone_mm": zone,
                         "within_band": within,
                         "zones": json.dumps(zones),
@@ -390,15 +393,9 @@ class MeasurementPredictionReport:
 def predict_stored_measurement(
     session: str | Path,
     measurement: str,
+    noise: NoiseAssumptions = NoiseAssumptions(),  # noqa: B008 (immutable)
     *,
     model: str | None = None,
-    sigma: float | tuple[float, float] | None = None,
-    rho_images: float = 0.0,
-    rho_points: float = 0.0,
-    method: str = "ut",
-    calibration: bool = True,
-    n_samples: int | None = None,
-    seed: int = 0,
     store: bool = True,
 ) -> MeasurementPredictionReport:
     """Predict the error of a measurement stored by ``measure`` (by its id, e.g. ``m001``).
@@ -416,25 +413,18 @@ def predict_stored_measurement(
         load_calibrated_model,
     )
 
-    _check_rho(rho_images, rho_points)
-    options = _options(method, n_samples, seed)
     with open_session(session) as reader:
         rec = reader.record(MEASUREMENT_RECORD, measurement)
         name = model or str(rec.attrs["model"])
         cm = load_calibrated_model(reader, name, session)
     kind = str(rec.attrs["measurement_kind"])
-    sigma_px, source = _sigma(sigma, cm, f"model {name!r}")
+    sigma_px, source = noise.sigma_px(cm, f"model {name!r}")
     pred = predict_measurement_error(
         cm.model,
         kind,
         rec.arrays["pixels_left"],
         rec.arrays["pixels_right"],
-        sigma=sigma_px,
-        rho_images=rho_images,
-        rho_points=rho_points,
-        param_cov=cm.param_cov if calibration else None,
-        method=method,
-        **options,
+        **noise.propagation(sigma_px, cm.param_cov),
     )
     value, bias, std = float(pred.value[0]), float(pred.bias[0]), float(pred.std[0])
     parts = {k: float(v[1][0]) for k, v in pred.parts.items()}
@@ -444,15 +434,15 @@ def predict_stored_measurement(
         name,
         kind,
         kind_spec(kind).unit,
-        method,
+        noise.method,
         sigma_px,
         source,
-        float(rho_images),
-        float(rho_points),
+        float(noise.rho_images),
+        float(noise.rho_points),
         value,
         bias,
         std,
-        parts.get("image", std if not calibration else math.nan),
+        parts.get("image", std if not noise.calibration else math.nan),
         parts.get("calibration", math.nan),
         Z95 * std,
         accuracy_index(value, bias, std),
@@ -463,7 +453,7 @@ def predict_stored_measurement(
             writer.write_record(
                 Record(
                     PREDICTION_RECORD,
-                    f"{measurement}-{method}",
+                    f"{measurement}-{noise.method}",
                     attrs={
                         "mode": "measurement",
                         **{
@@ -569,26 +559,18 @@ def predict_map(
     size_mm: float = 1.0,
     depths: str | Sequence[float] = DEFAULT_DEPTHS_MM,
     grid: tuple[int, int] = (24, 18),
-    sigma: float | tuple[float, float] | None = None,
-    rho_images: float = 0.0,
-    rho_points: float = 0.0,
-    method: str = "ut",
-    calibration: bool = True,
-    n_samples: int | None = None,
-    seed: int = 0,
+    noise: NoiseAssumptions = NoiseAssumptions(),  # noqa: B008 (immutable)
     plot: str | Path | None = None,
     csv: str | Path | None = None,
 ) -> MapReport:
     """Predicted std of a template measurement over a grid of the working volume.
 
     Either a calibrated ``model`` of ``session`` (with its covariance unless
-    ``calibration=False``, and its residual sigma by default) or ``model_file``, a JSON
-    model with nominal parameters (no covariance; ``sigma`` must be given).
+    ``noise.calibration=False``, and its residual sigma by default) or ``model_file``, a
+    JSON model with nominal parameters (no covariance; ``noise.sigma`` must be given).
     """
     from endomeasure.measure.predict import TEMPLATES, error_map, volume_grid
 
-    _check_rho(rho_images, rho_points)
-    options = _options(method, n_samples, seed)
     if template not in TEMPLATES:
         raise BadInputError(
             f"unknown map template {template!r}", hint=f"use one of {', '.join(TEMPLATES)}"
@@ -600,7 +582,6 @@ def predict_map(
     if model_file is not None:
         cam = _load_model_file(model_file)
         param_cov, cm, source, name = None, None, str(model_file), cam.NAME
-        calibration = False
     else:
         if session is None:
             raise BadInputError("a map needs a session with a calibrated model, or --model-file")
@@ -610,9 +591,10 @@ def predict_map(
         with open_session(session) as reader:
             cm = load_calibrated_model(reader, model, session)
         cam, name, source = cm.model, model, str(session)
-        param_cov = cm.param_cov if calibration else None
-        calibration = calibration and param_cov is not None
-    sigma_px, sigma_source = _sigma(sigma, cm, "a model file" if cm is None else f"model {model!r}")
+        param_cov = cm.param_cov
+    calibration = noise.calibration and param_cov is not None
+    what = "a model file" if cm is None else f"model {model!r}"
+    sigma_px, sigma_source = noise.sigma_px(cm, what)
     centres = volume_grid(cam, z, n_u, n_v)
     if centres.shape[0] == 0:
         raise BadInputError(
@@ -624,12 +606,7 @@ def predict_map(
         centres,
         template,
         size_mm,
-        sigma=sigma_px,
-        rho_images=rho_images,
-        rho_points=rho_points,
-        param_cov=param_cov,
-        method=method,
-        **options,
+        **noise.propagation(sigma_px, param_cov),
     )
     per_depth = []
     for d in z:
@@ -671,12 +648,12 @@ def predict_map(
         template,
         float(size_mm),
         em.true,
-        method,
+        noise.method,
         sigma_px,
         sigma_source,
-        float(rho_images),
-        float(rho_points),
-        bool(calibration),
+        float(noise.rho_images),
+        float(noise.rho_points),
+        calibration,
         [float(d) for d in z],
         per_depth,
         written_plot,
