@@ -9,6 +9,7 @@ import pytest
 
 from endomeasure.conventions import Half, Status
 from endomeasure.models import MODELS, model_from_dict
+from endomeasure.models.base import ParamBatch
 
 ROUND_TRIP_TOL_PX = 1e-6  # SPEC 4.2: iterative inverses must agree to < 1e-6 px
 MIN_VALID_FRACTION = 0.95
@@ -174,10 +175,16 @@ def test_rays_with_a_parameter_vector_per_pixel_equal_each_models_rays(any_model
     params = _perturbed_params(any_model, rng, q.shape[0])
     batched = any_model.rays(q, half, params)
     assert np.all(batched.status == Status.OK)
+    # the same vectors as a table and an index per pixel (each used twice)
+    table = ParamBatch(params[::2], np.arange(q.shape[0]) // 2)
+    twice = any_model.rays(q, half, table)
+    np.testing.assert_array_equal(twice.status, Status.OK)
     for i in range(q.shape[0]):
         own = any_model.with_params(params[i]).rays(q[i], half)
         np.testing.assert_allclose(batched.origins[i], own.origins, rtol=0, atol=PER_ROW_TOL)
         np.testing.assert_allclose(batched.directions[i], own.directions, rtol=0, atol=PER_ROW_TOL)
+        shared = any_model.with_params(params[i - i % 2]).rays(q[i], half)
+        np.testing.assert_allclose(twice.directions[i], shared.directions, rtol=0, atol=PER_ROW_TOL)
 
 
 def test_invalid_parameter_vectors_are_refused_per_pixel(any_model, rng):

@@ -83,7 +83,7 @@ class Undistortion(NamedTuple):
     converged: np.ndarray  # (...,) bool
 
 
-def undistort(xd: np.ndarray, yd: np.ndarray, coeffs, tol) -> Undistortion:
+def undistort(xd: np.ndarray, yd: np.ndarray, coeffs, tol, r2_max=None) -> Undistortion:
     """Invert :func:`distort` by Newton's method, reporting convergence per point.
 
     Parameters
@@ -96,6 +96,9 @@ def undistort(xd: np.ndarray, yd: np.ndarray, coeffs, tol) -> Undistortion:
     tol : float or ndarray, shape (...)
         Convergence threshold on the distorted-coordinate residual, in normalised
         units (a pixel tolerance divided by the focal length).
+    r2_max : float or ndarray, shape (...), optional
+        :func:`max_monotonic_radius2` of the coefficients, when the caller has it (a
+        batch of lens models computes it once per model, not per point).
 
     Returns
     -------
@@ -113,7 +116,8 @@ def undistort(xd: np.ndarray, yd: np.ndarray, coeffs, tol) -> Undistortion:
     k1, k2, p1, p2, k3 = coeffs
     x = xd.copy()
     y = yd.copy()
-    r2_max = max_monotonic_radius2(k1, k2, k3)
+    if r2_max is None:
+        r2_max = max_monotonic_radius2(k1, k2, k3)
     if np.ndim(r2_max):
         r2_max = r2_max.reshape(x.shape)
     converged = np.zeros(x.shape, dtype=bool)

@@ -75,14 +75,15 @@ def _trace(x, y, faces, n_glass):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def trace_rays(x, y, faces, n_glass, origins, directions, status):
+def trace_rays(x, y, faces, n_glass, prism, origins, directions, status):
     """Trace many lens coordinates into ``origins (N,3)``, ``directions (N,3)``, ``status (N,)``.
 
-    ``faces`` (K, 8) and ``n_glass`` (K,) hold one prism (K = 1) or one per ray (K = N).
+    ``faces`` (K, 8) and ``n_glass`` (K,) hold K prisms; ``prism`` (N,) int names each
+    ray's (empty: prism 0 for all).
     """
-    per_ray = faces.shape[0] > 1
+    per_ray = prism.shape[0] > 0
     for i in range(x.shape[0]):
-        k = i if per_ray else 0
+        k = prism[i] if per_ray else 0
         ox, oy, oz, dx, dy, dz, st = _trace(x[i], y[i], faces[k], n_glass[k])
         origins[i, 0], origins[i, 1], origins[i, 2] = ox, oy, oz
         directions[i, 0], directions[i, 1], directions[i, 2] = dx, dy, dz

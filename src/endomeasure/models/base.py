@@ -25,7 +25,7 @@ import numpy as np
 
 from endomeasure.conventions import STATUS_DTYPE, Half, Status, in_half
 
-__all__ = ["CameraModel", "ModelConfig", "Projection", "ProjectionJacobian", "Rays"]
+__all__ = ["CameraModel", "ModelConfig", "ParamBatch", "Projection", "ProjectionJacobian", "Rays"]
 
 
 class Rays(NamedTuple):
@@ -43,6 +43,53 @@ class ProjectionJacobian(NamedTuple):
     pixels: np.ndarray  # (..., 2) px
     status: np.ndarray  # (...,) uint8 Status
     dq_dp: np.ndarray  # (..., 2, 3) px/mm: d pixel / d point, NaN where status != OK
+
+
+class ParamBatch(NamedTuple):
+    """Parameter vectors of one model kind for a batch of items (pixels, correspondences):
+    a few distinct vectors and, per item, which one it uses.
+
+    What :meth:`CameraModel.rays` and
+    :func:`~endomeasure.solvers.triangulate.triangulate` take as ``params`` to work
+    under many models at once (e.g. the sigma points of a calibration covariance), with
+    the per-vector work (validity, faces, fold-back radius) done once per vector.
+    """
+
+    table: np.ndarray
+    """(K, P) the distinct parameter vectors."""
+    index: np.ndarray | None
+    """(...) int: the row of ``table`` of each item (None: a one-row table for all)."""
+
+    @classmethod
+    def of(cls, params: np.ndarray | ParamBatch) -> ParamBatch:
+        """A batch from one parameter vector per item, ``params`` (..., P)."""
+        if isinstance(params, ParamBatch):
+            return params
+        p = np.asarray(params, dtype=np.float64)
+        table, index = np.unique(p.reshape(-1, p.shape[-1]), axis=0, return_inverse=True)
+        return cls(table, index.reshape(p.shape[:-1]))
+
+    @classmethod
+    def for_items(cls, params: np.ndarray | ParamBatch, shape: tuple, size: int) -> ParamBatch:
+        """:meth:`of`, checked against items of leading shape ``shape`` and vectors of
+        ``size`` parameters, with the index flattened (ValueError when they differ)."""
+        batch = cls.of(params)
+        if batch.index.shape != tuple(shape) or batch.table.shape[1:] != (size,):
+            raise ValueError(
+                f"params must have shape {(*shape, size)}, got a batch of "
+                f"{batch.index.shape} vectors of {batch.table.shape[1:]}"
+            )
+        return cls(batch.table, batch.index.reshape(-1))
+
+    def take(self, items) -> ParamBatch:
+        """The batch of a selection of the items (any numpy index of ``index``)."""
+        return ParamBatch(self.table, self.index[items])
+
+    def column(self, j: int) -> float | np.ndarray:
+        """Parameter ``j`` of every item: a float when the batch holds one vector."""
+        if self.table.shape[0] == 1:
+            return float(self.table[0, j])
+        return self.table[self.index, j]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,7 +246,9 @@ class CameraModel(abc.ABC):
         )
 
     # ----- the two questions ----------------------------------------------------------
-    def rays(self, pixels: np.ndarray, half: Half | str, params: np.ndarray | None = None) -> Rays:
+    def rays(
+        self, pixels: np.ndarray, half: Half | str, params: np.ndarray | ParamBatch | None = None
+    ) -> Rays:
         """Backward: the ray each pixel of a half sees.
 
         Parameters
@@ -207,10 +256,9 @@ class CameraModel(abc.ABC):
         pixels : ndarray, shape (..., 2), px
             Full-image pixel coordinates.
         half : Half or {'left', 'right'}
-        params : ndarray, shape (..., P), optional
+        params : ndarray, shape (..., P), or ParamBatch with index of shape (...), optional
             A parameter vector per pixel instead of the model's own: traces a batch of
-            models of this kind and configuration at once (e.g. the sigma points of a
-            calibration covariance). Pixels with an invalid vector
+            models of this kind and configuration at once. Pixels with an invalid vector
             (:meth:`valid_params`) get ``INVALID_INPUT``.
 
         Returns
@@ -224,23 +272,19 @@ class CameraModel(abc.ABC):
         finite = status == Status.OK
         inside = in_half(flat, half, self.config.split, self.config.image_size)
         status[finite & ~inside] = Status.OUTSIDE_HALF
+        batch = None
         if params is not None:
-            params = np.asarray(params, dtype=np.float64)
-            if params.shape != (*shape, self.params.size):
-                raise ValueError(
-                    f"params must have shape {(*shape, self.params.size)} for pixels of shape "
-                    f"{(*shape, 2)}, got {params.shape}"
-                )
-            params = params.reshape(-1, self.params.size)
-            status[(status == Status.OK) & ~self.valid_params(params)] = Status.INVALID_INPUT
+            batch = ParamBatch.for_items(params, shape, self.params.size)
+            valid = self.valid_params(batch.table)[batch.index]
+            status[(status == Status.OK) & ~valid] = Status.INVALID_INPUT
         origins = np.full((flat.shape[0], 3), np.nan)
         directions = np.full((flat.shape[0], 3), np.nan)
         todo = np.flatnonzero(status == Status.OK)
         if todo.size:
-            if params is None:
+            if batch is None:
                 o, d, s = self._rays(flat[todo], half)
             else:
-                o, d, s = self._rays_rows(flat[todo], half, params[todo])
+                o, d, s = self._rays_rows(flat[todo], half, batch.take(todo))
             origins[todo], directions[todo], status[todo] = o, d, s
         bad = status != Status.OK
         origins[bad] = np.nan
@@ -321,19 +365,18 @@ class CameraModel(abc.ABC):
     def _rays(self, pixels: np.ndarray, half: Half) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rays of finite pixels inside the half, shape (N, 2) -> (N,3), (N,3), (N,)."""
 
-    def _rays_rows(self, pixels: np.ndarray, half: Half, params: np.ndarray):
-        """:meth:`_rays` with a valid parameter vector per pixel, ``params`` (N, P).
+    def _rays_rows(self, pixels: np.ndarray, half: Half, batch: ParamBatch):
+        """:meth:`_rays` with a valid parameter vector per pixel (``batch.index`` (N,)).
 
-        Default: one :meth:`_rays` call per distinct vector; models override it with
-        one vectorised pass.
+        Default: one :meth:`_rays` call per vector used; models override it with one
+        vectorised pass.
         """
         origins = np.empty((pixels.shape[0], 3))
         directions = np.empty((pixels.shape[0], 3))
         status = np.empty(pixels.shape[0], dtype=STATUS_DTYPE)
-        distinct, inverse = np.unique(params, axis=0, return_inverse=True)
-        for k, row in enumerate(distinct):
-            mine = np.flatnonzero(inverse.reshape(-1) == k)
-            o, d, s = self.with_params(row)._rays(pixels[mine], half)
+        for k in np.unique(batch.index):
+            mine = np.flatnonzero(batch.index == k)
+            o, d, s = self.with_params(batch.table[k])._rays(pixels[mine], half)
             origins[mine], directions[mine], status[mine] = o, d, s
         return origins, directions, status
 

@@ -21,7 +21,7 @@ from endomeasure.geometry.distortion import (
     undistort,
 )
 from endomeasure.geometry.rotations import rotation_matrix
-from endomeasure.models.base import CameraModel
+from endomeasure.models.base import CameraModel, ParamBatch
 
 __all__ = ["PinholeModel", "project_pinhole", "UNDISTORT_TOL_PX"]
 
@@ -119,26 +119,35 @@ class PinholeModel(CameraModel):
         return pixels, status, dq_dp
 
     def _rays(self, pixels, half):
-        return self._rays_rows(pixels, half, self.params[None])
+        return self._rays_rows(pixels, half, ParamBatch(self.params[None], None))
 
-    def _rays_rows(self, pixels, half, params):
-        """Rays with a parameter vector per pixel (N, 24), or one for all (1, 24)."""
+    def _rays_rows(self, pixels, half, batch):
+        """Rays with a parameter vector per pixel (``batch``; index None: its only vector)."""
         group = self.GROUPS[half.label]
-        intr = params[:, group].T if params.shape[0] > 1 else params[0, group]
-        fx, fy, cx, cy, k1, k2, p1, p2, k3 = intr
+        intrinsics = (batch.column(j) for j in range(group.start, group.stop))
+        fx, fy, cx, cy, k1, k2, p1, p2, k3 = intrinsics
+        radial = (self.column(batch.table, f"{half.label}_{k}") for k in ("k1", "k2", "k3"))
+        r2 = max_monotonic_radius2(*radial)
+        one = batch.table.shape[0] == 1
         und = undistort(
             (pixels[:, 0] - cx) / fx,
             (pixels[:, 1] - cy) / fy,
             (k1, k2, p1, p2, k3),
             UNDISTORT_TOL_PX / np.maximum(fx, fy),
+            r2_max=float(r2[0]) if one else r2[batch.index],
         )
         d = np.stack([und.x, und.y, np.ones_like(und.x)], axis=-1)
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
         status = np.where(und.converged, Status.OK, Status.NOT_CONVERGED).astype(STATUS_DTYPE)
         origins = np.zeros_like(d)
         if half is Half.RIGHT:
-            R = rotation_matrix(params[:, self.GROUPS["rvec_right_left"]])  # (K, 3, 3)
-            t = params[:, self.GROUPS["t_right_left"]]
-            origins[:] = -np.einsum("kji,kj->ki", R, t)  # right camera centre, left frame
-            d = d @ R[0] if R.shape[0] == 1 else np.einsum("nj,nji->ni", d, R)  # R^T d
+            R = rotation_matrix(batch.table[:, self.GROUPS["rvec_right_left"]])  # (K, 3, 3)
+            t = batch.table[:, self.GROUPS["t_right_left"]]
+            centre = -np.einsum("kji,kj->ki", R, t)  # right camera centre in the left frame
+            if one:
+                origins[:] = centre[0]
+                d = d @ R[0]  # R^T d for each row
+            else:
+                origins[:] = centre[batch.index]
+                d = np.einsum("nj,nji->ni", d, R[batch.index])
         return origins, d, status

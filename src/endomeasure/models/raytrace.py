@@ -32,7 +32,7 @@ from endomeasure.geometry.distortion import (
     undistort,
 )
 from endomeasure.models import _prism_kernels
-from endomeasure.models.base import CameraModel
+from endomeasure.models.base import CameraModel, ParamBatch
 
 __all__ = ["RaytraceModel", "PrismTrace", "plane_normal", "AIM_TOL_PX", "AIM_MAX_ITER"]
 
@@ -86,17 +86,24 @@ def _faces(params: np.ndarray, half: Half) -> np.ndarray:
     )
 
 
-def _trace(x: np.ndarray, y: np.ndarray, faces: np.ndarray, n_glass: np.ndarray) -> PrismTrace:
+def _trace(
+    x: np.ndarray,
+    y: np.ndarray,
+    faces: np.ndarray,
+    n_glass: np.ndarray,
+    prism: np.ndarray | None = None,
+) -> PrismTrace:
     """Trace lens coordinates (N,) through prisms ``faces`` (K, 8), ``n_glass`` (K,):
-    one prism for all rays (K = 1) or one per ray (K = N); see ``_prism_kernels``."""
+    ``prism`` (N,) names each ray's (None: the first for all); see ``_prism_kernels``."""
     x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1)
     y = np.ascontiguousarray(y, dtype=np.float64).reshape(-1)
     origins = np.empty((x.size, 3))
     directions = np.empty((x.size, 3))
     status = np.empty(x.size, dtype=STATUS_DTYPE)
+    prism = np.zeros(0, dtype=np.int64) if prism is None else prism.astype(np.int64)
     _prism_kernels.trace_rays(
         x, y, np.ascontiguousarray(faces, dtype=np.float64),
-        np.ascontiguousarray(n_glass, dtype=np.float64), origins, directions, status,
+        np.ascontiguousarray(n_glass, dtype=np.float64), prism, origins, directions, status,
     )  # fmt: skip
     return PrismTrace(origins, directions, status)
 
@@ -182,20 +189,23 @@ class RaytraceModel(CameraModel):
         return _trace(x, y, self.faces_array(half)[None], np.array([self.n_glass]))
 
     def _rays(self, pixels, half):
-        return self._rays_rows(pixels, half, self.params[None])
+        return self._rays_rows(pixels, half, ParamBatch(self.params[None], None))
 
-    def _rays_rows(self, pixels, half, params):
-        """Rays with a parameter vector per pixel (N, 19), or one for all (1, 19)."""
-        one = params.shape[0] == 1
-        p = dict(zip(self.PARAM_NAMES, params[0] if one else params.T, strict=True))
+    def _rays_rows(self, pixels, half, batch):
+        """Rays with a parameter vector per pixel (``batch``; index None: its only vector)."""
+        p = {name: batch.column(j) for j, name in enumerate(self.PARAM_NAMES)}
+        one = batch.table.shape[0] == 1
+        r2 = max_monotonic_radius2(*(self.column(batch.table, k) for k in ("k1", "k2", "k3")))
         und = undistort(
             (pixels[:, 0] - p["cx"]) / p["fx"],
             (pixels[:, 1] - p["cy"]) / p["fy"],
             (p["k1"], p["k2"], p["p1"], p["p2"], p["k3"]),
             UNDISTORT_TOL_PX / np.maximum(p["fx"], p["fy"]),
+            r2_max=float(r2[0]) if one else r2[batch.index],
         )
-        faces = self.faces_array(half)[None] if one else _faces(params, half)
-        traced = _trace(und.x, und.y, faces, np.atleast_1d(p["n_glass"]))
+        faces = self.faces_array(half)[None] if one else _faces(batch.table, half)
+        n_glass = self.column(batch.table, "n_glass")
+        traced = _trace(und.x, und.y, faces, n_glass, None if one else batch.index)
         status = np.where(und.converged, traced.status, Status.NOT_CONVERGED)
         return traced.origins, traced.directions, status.astype(STATUS_DTYPE)
 

@@ -46,6 +46,7 @@ import numpy as np
 
 from endomeasure.conventions import STATUS_DTYPE, Half, Status
 from endomeasure.geometry.rays import common_perpendicular
+from endomeasure.models.base import ParamBatch
 
 if TYPE_CHECKING:
     from endomeasure.models.base import CameraModel
@@ -156,14 +157,14 @@ def _trace_jets(
     half: Half,
     refresh: np.ndarray,
     previous: _RayJet | None,
-    params: np.ndarray | None,
+    params: ParamBatch | None,
 ) -> _RayJet:
     """Rays at pixels ``x`` (N, 2) in one batched backward trace.
 
     Where ``refresh`` is True the two forward-difference neighbours are traced too and
     the derivatives renewed; elsewhere the derivatives of ``previous`` are kept (a
-    chord step: they were taken less than ``JET_REFRESH_PX`` away). ``params`` (N, P):
-    a parameter vector per pixel, or None for the model's own.
+    chord step: they were taken less than ``JET_REFRESH_PX`` away). ``params``: a
+    parameter vector per pixel, or None for the model's own.
     """
     n = x.shape[0]
     fresh = np.flatnonzero(refresh)
@@ -172,7 +173,7 @@ def _trace_jets(
     neighbours[:, 0, 0] += h[:, 0]
     neighbours[:, 1, 1] += h[:, 1]
     if params is not None:
-        params = np.concatenate([params, np.repeat(params[fresh], 2, axis=0)])
+        params = params.take(np.concatenate([np.arange(n), np.repeat(fresh, 2)]))
     r = model.rays(np.concatenate([x, neighbours.reshape(-1, 2)]), half, params)
     o, d = r.origins[:n], r.directions[:n]
     status = r.status[:n].copy()
@@ -240,7 +241,7 @@ def triangulate(
     method: str = "ml",
     *,
     reproject: bool = True,
-    params: np.ndarray | None = None,
+    params: np.ndarray | ParamBatch | None = None,
 ) -> Triangulation:
     """Triangulate correspondences between the left and right halves.
 
@@ -257,7 +258,7 @@ def triangulate(
     reproject : bool
         For ``'midpoint'`` only: project the midpoints to fill ``rms`` and the pixel
         fields (costs one forward projection per half). ``'ml'`` gets them for free.
-    params : ndarray, shape (..., P), optional
+    params : ndarray, shape (..., P), or ParamBatch with index of shape (...), optional
         A parameter vector of the model's kind per correspondence (the leading shape
         of the pixels) instead of the model's own: triangulates under many models in
         one batched solve, e.g. the sigma points of a calibration covariance. Not
@@ -286,12 +287,7 @@ def triangulate(
     ql = ql.reshape(-1, 2)
     qr = qr.reshape(-1, 2)
     if params is not None:
-        params = np.asarray(params, dtype=np.float64)
-        if params.shape != (*shape, model.params.size):
-            raise ValueError(
-                f"params must have shape {(*shape, model.params.size)}, got {params.shape}"
-            )
-        params = params.reshape(-1, model.params.size)
+        params = ParamBatch.for_items(params, shape, model.params.size)
         if method == "midpoint" and reproject:
             raise ValueError("per-correspondence params need reproject=False with 'midpoint'")
     if method == "midpoint":
@@ -349,7 +345,7 @@ def _maximum_likelihood(model, ql, qr, params) -> Triangulation:
         if active.size == 0:
             break
         xa = x[active]
-        pa = None if params is None else params[active]
+        pa = None if params is None else params.take(active)
         jl = _trace_jets(model, xa[:, :2], Half.LEFT, refresh, jl, pa)
         jr = _trace_jets(model, xa[:, 2:], Half.RIGHT, refresh, jr, pa)
         trace_status = _first_failure(jl.status, jr.status)

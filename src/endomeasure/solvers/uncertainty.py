@@ -37,6 +37,7 @@ import numpy as np
 
 from endomeasure.conventions import Status
 from endomeasure.errors import BadInputError
+from endomeasure.models.base import ParamBatch
 from endomeasure.solvers.triangulate import triangulate
 
 if TYPE_CHECKING:
@@ -724,12 +725,12 @@ class MeasurementFunction:
         params = np.broadcast_to(self.model.params[self.free], (*lead, self.free.size))
         return np.concatenate([pix, params], axis=-1)
 
-    def _points(self, corr: np.ndarray, params: np.ndarray | None) -> np.ndarray:
+    def _points(self, corr: np.ndarray, params: ParamBatch | None) -> np.ndarray:
         """Triangulate the distinct rows of ``corr`` (R, 4) under the model, or each under
-        its own parameter vector ``params`` (R, P), in one batched solve; NaN rows where
-        not OK."""
-        rows = corr if params is None else np.concatenate([corr, params[:, self.free]], axis=1)
-        rows = np.ascontiguousarray(rows)
+        its own parameter vector (``params``, index (R,)), in one batched solve; NaN rows
+        where not OK."""
+        rows = corr if params is None else np.column_stack([corr, params.index])
+        rows = np.ascontiguousarray(rows, dtype=np.float64)
         key = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).reshape(-1)
         _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
         tri = triangulate(
@@ -738,7 +739,7 @@ class MeasurementFunction:
             corr[first, 2:],
             self.method,
             reproject=False,
-            params=None if params is None else params[first],
+            params=None if params is None else params.take(first),
         )
         pts = np.where((tri.status == Status.OK)[:, None], tri.points, np.nan)
         return pts[inverse.reshape(-1)]
@@ -751,10 +752,11 @@ class MeasurementFunction:
         corr = flat[:, : 4 * n].reshape(-1, 4)
         params = None
         if self.free.size:
-            # every input row is a model: its parameter vector goes with each of its points
-            # (invalid vectors, e.g. n_glass <= 1, give NaN points and so NaN values)
-            params = np.repeat(np.asarray(self.model.params)[None], flat.shape[0], axis=0)
-            params[:, self.free] = flat[:, 4 * n :]
-            params = np.repeat(params, n, axis=0)
+            # every input row is a model; its few distinct parameter vectors form the
+            # batch's table (invalid ones, e.g. n_glass <= 1, give NaN points and values)
+            free, index = np.unique(flat[:, 4 * n :], axis=0, return_inverse=True)
+            table = np.repeat(np.asarray(self.model.params)[None], free.shape[0], axis=0)
+            table[:, self.free] = free
+            params = ParamBatch(table, np.repeat(index.reshape(-1), n))
         pts = self._points(corr, params).reshape(flat.shape[0], n, 3)
         return self.formula(pts).reshape(lead)
