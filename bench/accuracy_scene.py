@@ -36,6 +36,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import zlib
 from pathlib import Path
 
 import cv2
@@ -131,7 +132,8 @@ def paint(image, sy, centre_sy, kind, noise):
         region = (np.abs(ds) <= STRIPE_HALF_MM[0]) & (np.abs(dy) <= STRIPE_HALF_MM[1])
         new = shading * (1.0 + STRIPE_AMPLITUDE * np.sin(2 * np.pi * ds / STRIPE_PERIOD_MM))
     region &= np.isfinite(ds)
-    rng = np.random.default_rng(abs(hash((kind, *np.round(centre_sy, 3)))) % 2**32)
+    # a seed of its own per site and kind, the same in every run (str hashes are not)
+    rng = np.random.default_rng(zlib.crc32(f"{kind} {np.round(centre_sy, 3)}".encode()))
     noisy = new + rng.normal(0.0, noise, grey.shape)
     out = np.where(region, noisy, grey)
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
