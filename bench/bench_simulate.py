@@ -240,7 +240,7 @@ def bench_accuracy(noisy_dir: str | None, seed: int) -> None:
         for method, label in (
             ("oracle", "renderer check: point-symmetry locator (simulate/oracle.py)"),
             ("sb", "cv2.findChessboardCornersSB"),
-            ("default", "features default (SB + cornerSubPix)"),
+            ("default", "features default (SB + point symmetry)"),
         ):
             for kind, folder, bar in (("noisy", noisy, 0.1), ("noise-free", clean, 0.05)):
                 for name, s in _accuracy_of(folder, sets, method).items():
