@@ -107,49 +107,50 @@ def undistort(xd: np.ndarray, yd: np.ndarray, coeffs, tol, r2_max=None) -> Undis
         steps, or that leave the monotonic part of the radial polynomial, are NaN with
         ``converged`` False: the inverse is not unique there.
     """
-    xd = np.asarray(xd, dtype=np.float64)
-    yd = np.asarray(yd, dtype=np.float64)
-    # per-point coefficients follow the active points through the iteration
-    per_point = [np.broadcast_to(c, xd.shape).reshape(-1) if np.ndim(c) else c
-                 for c in (*coeffs, tol)]  # fmt: skip
-    *coeffs, tol = per_point
-    k1, k2, p1, p2, k3 = coeffs
+    shape = np.broadcast(np.asarray(xd), np.asarray(yd)).shape
+    xd = np.broadcast_to(np.asarray(xd, dtype=np.float64), shape).reshape(-1)
+    yd = np.broadcast_to(np.asarray(yd, dtype=np.float64), shape).reshape(-1)
+
+    def per_point(c):  # a scalar, or per-point values as a flat array
+        return np.broadcast_to(c, shape).reshape(-1) if np.ndim(c) else c
+
+    coeffs = [per_point(c) for c in coeffs]
+    tol = per_point(tol)
+    if r2_max is None:
+        r2_max = max_monotonic_radius2(*coeffs[:2], coeffs[4])
+    r2_max = per_point(r2_max)
     x = xd.copy()
     y = yd.copy()
-    if r2_max is None:
-        r2_max = max_monotonic_radius2(k1, k2, k3)
-    if np.ndim(r2_max):
-        r2_max = r2_max.reshape(x.shape)
-    converged = np.zeros(x.shape, dtype=bool)
-    active = np.isfinite(x) & np.isfinite(y)
+    converged = np.zeros(x.size, dtype=bool)
+    # Newton on the compacted arrays of the points still iterating
+    idx = np.flatnonzero(np.isfinite(xd) & np.isfinite(yd))
+
+    def take(values, rows):
+        return [v[rows] if np.ndim(v) else v for v in values]
+
+    xa, ya, xda, yda = x[idx], y[idx], xd[idx], yd[idx]
+    cs, tol_a = take(coeffs, idx), take([tol], idx)[0]
     for _ in range(UNDISTORT_MAX_ITER):
-        if not active.any():
+        if idx.size == 0:
             break
-        idx = np.flatnonzero(active)
-        cs = [c[idx] if np.ndim(c) else c for c in coeffs]
-        xa, ya = x.flat[idx], y.flat[idx]
         ex, ey = distort(xa, ya, cs)
-        ex -= xd.flat[idx]
-        ey -= yd.flat[idx]
-        done = np.maximum(np.abs(ex), np.abs(ey)) < (tol[idx] if np.ndim(tol) else tol)
-        converged.flat[idx[done]] = True
+        ex -= xda
+        ey -= yda
+        done = np.maximum(np.abs(ex), np.abs(ey)) < tol_a
+        converged[idx[done]] = True
+        x[idx[done]], y[idx[done]] = xa[done], ya[done]
         j11, j12, j21, j22 = distort_jacobian(xa, ya, cs)
         det = j11 * j22 - j12 * j21
         with np.errstate(divide="ignore", invalid="ignore"):
-            sx = (j22 * ex - j12 * ey) / det
-            sy = (j11 * ey - j21 * ex) / det
-        step = ~done
-        xa = np.where(step, xa - sx, xa)
-        ya = np.where(step, ya - sy, ya)
-        x.flat[idx] = xa
-        y.flat[idx] = ya
-        active.flat[idx[done]] = False
-        lost = ~np.isfinite(xa) | ~np.isfinite(ya)
-        active.flat[idx[lost]] = False
+            xa = xa - (j22 * ex - j12 * ey) / det
+            ya = ya - (j11 * ey - j21 * ex) / det
+        go_on = ~done & np.isfinite(xa) & np.isfinite(ya)
+        idx, xa, ya, xda, yda = idx[go_on], xa[go_on], ya[go_on], xda[go_on], yda[go_on]
+        cs, tol_a = take(cs, go_on), take([tol_a], go_on)[0]
     converged &= (x * x + y * y) <= r2_max
-    x = np.where(converged, x, np.nan)
-    y = np.where(converged, y, np.nan)
-    return Undistortion(x, y, converged)
+    x = np.where(converged, x, np.nan).reshape(shape)
+    y = np.where(converged, y, np.nan).reshape(shape)
+    return Undistortion(x, y, converged.reshape(shape))
 
 
 def max_monotonic_radius2(k1, k2, k3):
