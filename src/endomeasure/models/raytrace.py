@@ -41,6 +41,7 @@ AIM_TOL_PX = 1e-8
 superlinearly, so the remaining error is far below the 1e-6 px the spec asks."""
 AIM_MAX_ITER = 25
 UNDISTORT_TOL_PX = 1e-10  # px
+_LENS_TERMS = ("k1", "k2", "p1", "p2", "k3")  # distortion coefficients in OpenCV order
 
 
 def plane_normal(a, b) -> np.ndarray:
@@ -153,7 +154,7 @@ class RaytraceModel(CameraModel):
         return plane_normal(a, b), d
 
     def _lens_coeffs(self) -> tuple[float, float, float, float, float]:
-        return (self.k1, self.k2, self.p1, self.p2, self.k3)
+        return tuple(getattr(self, k) for k in _LENS_TERMS)
 
     def faces_array(self, half: Half) -> np.ndarray:
         """Rear and front face of a half packed for the compiled kernels, float64[8]."""
@@ -193,13 +194,13 @@ class RaytraceModel(CameraModel):
 
     def _rays_rows(self, pixels, half, batch):
         """Rays with a parameter vector per pixel (``batch``; index None: its only vector)."""
-        p = {name: batch.column(j) for j, name in enumerate(self.PARAM_NAMES)}
+        p = {k: batch.column(self.index(k)) for k in ("fx", "fy", "cx", "cy", *_LENS_TERMS)}
         one = batch.table.shape[0] == 1
         r2 = max_monotonic_radius2(*(self.column(batch.table, k) for k in ("k1", "k2", "k3")))
         und = undistort(
             (pixels[:, 0] - p["cx"]) / p["fx"],
             (pixels[:, 1] - p["cy"]) / p["fy"],
-            (p["k1"], p["k2"], p["p1"], p["p2"], p["k3"]),
+            tuple(p[k] for k in _LENS_TERMS),
             UNDISTORT_TOL_PX / np.maximum(p["fx"], p["fy"]),
             r2_max=float(r2[0]) if one else r2[batch.index],
         )
