@@ -49,6 +49,9 @@ def plane_normal(a, b) -> np.ndarray:
 
     ``a``, ``b`` floats or arrays of shape (...); returns shape (..., 3).
     """
+    if np.ndim(a) == 0 and np.ndim(b) == 0:  # one face: the common case, kept cheap
+        n = np.array([np.tan(a), np.tan(b), 1.0])
+        return n / np.sqrt(n @ n)
     a, b = np.broadcast_arrays(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64))
     n = np.stack([np.tan(a), np.tan(b), np.ones_like(a)], axis=-1)
     return n / np.linalg.norm(n, axis=-1, keepdims=True)
@@ -82,9 +85,8 @@ def _faces(params: np.ndarray, half: Half) -> np.ndarray:
 
     rear = plane_normal(col("rear_a"), col("rear_b"))
     front = plane_normal(col(f"{half.label}_a"), col(f"{half.label}_b"))
-    return np.concatenate(
-        [rear, col("rear_d")[..., None], front, col(f"{half.label}_d")[..., None]], axis=-1
-    )
+    d_rear, d_front = np.asarray(col("rear_d")), np.asarray(col(f"{half.label}_d"))
+    return np.concatenate([rear, d_rear[..., None], front, d_front[..., None]], axis=-1)
 
 
 def _trace(
