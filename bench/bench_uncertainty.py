@@ -103,7 +103,8 @@ points in one batched triangulation), median of 50 runs:
 
 With the calibration covariance every parameter sigma point is another model; all
 of them are triangulated in the same batched solve, with a parameter vector per
-correspondence (`triangulate(..., params=...)`; one solve per model took 125 ms).
+correspondence (`triangulate(..., params=...)`; one solve per model took 125 ms in
+this script before that change, 2026-11-23).
 Measurements of three or more points also get one cross point per pair of pixel
 coordinates (the variance then is second-order exact,
 `endomeasure.solvers.uncertainty`); each moves at most two points, and only distinct

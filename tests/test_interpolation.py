@@ -3,14 +3,20 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from endomeasure.interpolation import spline_coefficients, spline_sample
+from endomeasure.interpolation import noise_gain, spline_coefficients, spline_sample
 
 POLY_TOL = 2e-5
 """A cubic B-spline interpolates cubic polynomials exactly; what is left is rounding of
 the float32 coefficients: about 1e-7 relative to the values (up to ~90 here, so ~1e-5
 at worst; 3.4e-6 measured) and the mirror boundary's transient, which decays as 0.268^d
 and is far below that well inside the box."""
+
+
+GAIN_TOLERANCE = 1e-5
+"""The pixel weights of the interpolant are cut at ``CARDINAL_REACH`` = 10 px either side,
+where they are below 2e-6; scipy's reference sees its mirror boundary 20 px away."""
 
 
 def _poly(u, v):
@@ -49,3 +55,22 @@ def test_the_box_stays_inside_the_given_columns(rng):
     grid = np.array([[10.0, 20.0], [30.0, 40.0]])
     at_grid = spline_sample(*spline_coefficients(image, grid, cols=(0, 59)), grid)[0]
     np.testing.assert_allclose(at_grid, image[[20, 40], [10, 30]], rtol=1e-6)
+
+
+def test_noise_gain_against_scipy():
+    """The variance of interpolated unit white noise is the sum of the squared weights the
+    pixels get in scipy's cubic spline interpolation (prefilter included)."""
+    from scipy.ndimage import map_coordinates
+
+    size = 41
+    phases = np.array([0.0, 0.2, 0.5, 0.8])
+    expected = []
+    for t in phases:
+        values = []
+        for j in range(size):  # the interpolant of an impulse at j, sampled at 20 + t
+            impulse = np.zeros(size)
+            impulse[j] = 1.0
+            values.append(map_coordinates(impulse, [[20.0 + t]], order=3, mode="mirror")[0])
+        expected.append(np.sum(np.square(values)))
+    np.testing.assert_allclose(noise_gain(phases), expected, atol=GAIN_TOLERANCE)
+    assert noise_gain(np.array(0.0)) == pytest.approx(1.0, abs=GAIN_TOLERANCE)

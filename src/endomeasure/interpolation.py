@@ -21,7 +21,15 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["PREFILTER_MARGIN_PX", "bspline_weights", "spline_coefficients", "spline_sample"]
+__all__ = [
+    "CARDINAL_REACH",
+    "PREFILTER_MARGIN_PX",
+    "bspline_weights",
+    "cardinal_weights",
+    "noise_gain",
+    "spline_coefficients",
+    "spline_sample",
+]
 
 PREFILTER_MARGIN_PX = 9
 """Extra pixels around the points whose coefficients are computed: the prefilter's
@@ -106,3 +114,48 @@ def spline_sample(
     grad_v = np.einsum("...i,...i->...", along_x, dwy)
     grad_u = np.einsum("...i,...i->...", slope_x, wy)
     return values, grad_u, grad_v
+
+
+# ----- the interpolant as weights on the pixels (what noise propagation needs) ----------
+
+_SPLINE_POLE = np.sqrt(3.0) - 2.0
+"""Pole of the cubic B-spline's interpolation prefilter: the cardinal cubic spline is
+``eta(x) = sum_k sqrt(3) z^|k| beta3(x - k)`` with this ``z``."""
+CARDINAL_REACH = 10
+"""Pixels either side whose weights :func:`cardinal_weights` keeps (``0.268^10 < 2e-6``)."""
+
+
+def _bspline3(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The cubic B-spline ``beta3(x)`` and its derivative."""
+    a = np.abs(x)
+    inner = a < 1.0
+    outer = (a >= 1.0) & (a < 2.0)
+    far = np.where(outer, (2.0 - a) ** 3 / 6.0, 0.0)
+    value = np.where(inner, 2.0 / 3.0 - a**2 + a**3 / 2.0, far)
+    slope = np.where(inner, -2.0 * a + 1.5 * a**2, np.where(outer, -0.5 * (2.0 - a) ** 2, 0.0))
+    return value, np.sign(x) * slope
+
+
+def cardinal_weights(phase: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weights of the pixels ``j = -R..R`` (``R`` = :data:`CARDINAL_REACH`) in the cubic
+    spline interpolation at ``j0 + phase``, and their derivatives, shape (..., 2R + 1):
+    the interpolated value is ``sum_j w_j I(j0 + j)`` (prefilter included)."""
+    j = np.arange(-CARDINAL_REACH, CARDINAL_REACH + 1, dtype=np.float64)
+    x = np.asarray(phase, dtype=np.float64)[..., None] - j  # (..., 2R+1)
+    base = np.floor(x)
+    weight = np.zeros_like(x)
+    slope = np.zeros_like(x)
+    for shift in (-1.0, 0.0, 1.0, 2.0):
+        k = base + shift
+        b, db = _bspline3(x - k)
+        c = np.sqrt(3.0) * _SPLINE_POLE ** np.abs(k)
+        weight += c * b
+        slope += c * db
+    return weight, slope
+
+
+def noise_gain(frac: np.ndarray) -> np.ndarray:
+    """Variance of the interpolant of unit white pixel noise at sub-pixel phase ``frac``
+    (...,) along one axis: ``sum_j w_j^2``, 1 at a pixel, 0.756 half-way between pixels.
+    A 2-D sample's gain is the product of its two axes' gains."""
+    return np.sum(cardinal_weights(frac)[0] ** 2, axis=-1)

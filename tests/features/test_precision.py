@@ -7,7 +7,7 @@ import pytest
 
 from endomeasure.conventions import Half
 from endomeasure.features.boards import parse_board_spec
-from endomeasure.features.precision import interpolation_noise_gain, symmetric_precision
+from endomeasure.features.precision import symmetric_precision
 from endomeasure.features.subpixel import local_quadratic, symmetric_corners
 from endomeasure.features.synthetic import render_split_image
 
@@ -31,8 +31,6 @@ RESIDUAL_VARIANCE_TOLERANCE = 0.1
 """Noise variance estimated from the fit's residuals at sigma 8 grey levels: the model
 misfit of the renderer's 4x4 sampling adds about 2 grey levels^2 (measured on the
 noise-free render), 3 % of 64."""
-GAIN_TOLERANCE = 1e-5
-"""The float32 B-spline weights of :func:`bspline_weights` (about 1e-7 relative)."""
 
 
 @pytest.fixture(scope="module")
@@ -85,20 +83,3 @@ def test_residual_noise_estimate(scene, rng):
     noisy = image + rng.normal(0.0, sigma, image.shape)
     estimated = symmetric_precision(noisy, truth, steps, curvature)
     assert abs(np.median(estimated.noise_variance) / sigma**2 - 1) < RESIDUAL_VARIANCE_TOLERANCE
-
-
-def test_interpolation_noise_gain_against_scipy():
-    from scipy.ndimage import map_coordinates
-
-    size = 41
-    phases = np.array([0.0, 0.2, 0.5, 0.8])
-    expected = []
-    for t in phases:
-        values = []
-        for j in range(size):  # the interpolant of an impulse at j, sampled at 20 + t
-            impulse = np.zeros(size)
-            impulse[j] = 1.0
-            values.append(map_coordinates(impulse, [[20.0 + t]], order=3, mode="mirror")[0])
-        expected.append(np.sum(np.square(values)))
-    np.testing.assert_allclose(interpolation_noise_gain(phases), expected, atol=GAIN_TOLERANCE)
-    assert interpolation_noise_gain(np.array(0.0)) == pytest.approx(1.0, abs=GAIN_TOLERANCE)

@@ -38,13 +38,9 @@ from endomeasure.features.subpixel import (
     symmetric_problem,
     symmetric_system,
 )
-from endomeasure.interpolation import PREFILTER_MARGIN_PX, bspline_weights
+from endomeasure.interpolation import PREFILTER_MARGIN_PX, bspline_weights, noise_gain
 
-__all__ = ["CornerPrecision", "interpolation_noise_gain", "symmetric_precision"]
-
-# Half length of the impulse whose spline interpolant gives the noise gain: the cardinal
-# cubic spline decays as 0.268^d, below 1e-8 of its peak after 15 px.
-_KERNEL_HALF_LENGTH = 15
+__all__ = ["CornerPrecision", "symmetric_precision"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,37 +69,6 @@ class CornerPrecision:
         """ndarray, shape (n,): correlation of the u and v errors."""
         s = self.sigma
         return self.covariance[:, 0, 1] / (s[:, 0] * s[:, 1])
-
-
-def interpolation_noise_gain(frac: np.ndarray) -> np.ndarray:
-    """Variance of the cubic-spline interpolant of unit white noise at sub-pixel phase.
-
-    Parameters
-    ----------
-    frac : ndarray, shape (...,)
-        Sub-pixel phase along one axis (0 at a pixel centre).
-
-    Returns
-    -------
-    ndarray, shape (...,)
-        ``sum_j K(frac - j)^2`` with ``K`` the cardinal cubic spline: 1 at a pixel,
-        0.756 half-way between pixels. A 2-D sample's gain is the product of its
-        two axes' gains.
-    """
-    from scipy.ndimage import spline_filter1d
-
-    impulse = np.zeros(2 * _KERNEL_HALF_LENGTH + 1)
-    impulse[_KERNEL_HALF_LENGTH] = 1.0
-    kernel_coeffs = spline_filter1d(impulse, order=3, mode="mirror")
-    frac = np.asarray(frac, dtype=np.float64)
-    base = np.floor(frac)
-    weights = bspline_weights(frac - base)[0].astype(np.float64)  # (..., 4) taps -1..2
-    # K(frac - j) for every shift j: the interpolant of the impulse centred at j
-    centre = _KERNEL_HALF_LENGTH + base.astype(int)
-    shifts = np.arange(-_KERNEL_HALF_LENGTH + 2, _KERNEL_HALF_LENGTH - 1)
-    idx = centre[..., None, None] - shifts[:, None] + np.arange(-1, 3)
-    values = np.sum(weights[..., None, :] * kernel_coeffs[np.clip(idx, 0, impulse.size - 1)], -1)
-    return np.sum(values**2, axis=-1)
 
 
 def symmetric_precision(
@@ -158,8 +123,8 @@ def symmetric_precision(
 
     With ``noise=None`` the variance is ``sum w r^2 / sum w v (1 - w l)``, ``v`` the
     variance of a unit-noise residual (the two samples' interpolation gains,
-    :func:`interpolation_noise_gain`, their correlation neglected) and ``l`` its leverage
-    ``(J N^-1 J^T)_mm``.
+    :func:`~endomeasure.interpolation.noise_gain`, their correlation neglected) and ``l``
+    its leverage ``(J N^-1 J^T)_mm``.
     """
     from scipy.ndimage import spline_filter1d
 
@@ -260,7 +225,7 @@ def _residual_variance(
     """Pixel noise variance per corner from the weighted residuals of the fit, (n,)."""
     m = residual.shape[1]
     frac = points - np.floor(points)
-    gain = interpolation_noise_gain(frac[..., 0]) * interpolation_noise_gain(frac[..., 1])
+    gain = noise_gain(frac[..., 0]) * noise_gain(frac[..., 1])
     unit = gain[:, :m] + gain[:, m:]  # variance of a residual under unit pixel noise
     leverage = np.einsum("nmp,npq,nmq->nm", jacobian, inverse, jacobian) * weights
     expected = np.sum(weights * unit * (1.0 - leverage), axis=1)

@@ -86,8 +86,8 @@ the noisy image): negligible on strong texture, but on the simulator's metal at 
 noise (per-sample gradient about equal to the noise) it doubles the variance. Without
 it (and in the reference half's pixels) the precision was about twice too optimistic on
 random surface points of noisy scenes, while the marks were right. With it, on noisy
-renders of scene seeds 0-5, the RMS z-score along the curve is 0.80-1.18 for random
-points and 0.79-1.22 for the marks (``docs/accuracy.md``, "Match precision against the
+renders of scene seeds 0-5, the RMS z-score along the curve is 0.84-1.20 for random
+points and 0.71-0.99 for the marks (``docs/accuracy.md``, "Match precision against the
 simulator's truth", made by ``bench/match_precision.py``).
 """
 
@@ -103,7 +103,12 @@ import numpy as np
 from endomeasure.conventions import Half, Status, in_half
 from endomeasure.errors import BadInputError
 from endomeasure.geometry.rays import common_perpendicular
-from endomeasure.interpolation import spline_coefficients, spline_sample
+from endomeasure.interpolation import (
+    CARDINAL_REACH,
+    cardinal_weights,
+    spline_coefficients,
+    spline_sample,
+)
 from endomeasure.measure.epipolar import SPACING_PX, EpipolarCurve, epipolar_curve, other_half
 
 if TYPE_CHECKING:
@@ -379,41 +384,6 @@ def _sample_spline(
     return spline_sample(coeffs, origin, positions)
 
 
-_SPLINE_POLE = np.sqrt(3.0) - 2.0
-"""Pole of the cubic B-spline's interpolation prefilter: the cardinal cubic spline is
-``eta(x) = sum_k sqrt(3) z^|k| beta3(x - k)`` with this ``z``."""
-_SPLINE_REACH = 10
-"""Pixels either side whose weights :func:`_spline_weights` keeps (``0.268^10 < 2e-6``)."""
-
-
-def _bspline3(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The cubic B-spline ``beta3(x)`` and its derivative."""
-    a = np.abs(x)
-    inner = a < 1.0
-    outer = (a >= 1.0) & (a < 2.0)
-    far = np.where(outer, (2.0 - a) ** 3 / 6.0, 0.0)
-    value = np.where(inner, 2.0 / 3.0 - a**2 + a**3 / 2.0, far)
-    slope = np.where(inner, -2.0 * a + 1.5 * a**2, np.where(outer, -0.5 * (2.0 - a) ** 2, 0.0))
-    return value, np.sign(x) * slope
-
-
-def _spline_weights(phase: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weights of the pixels ``j = -R..R`` (``R`` = :data:`_SPLINE_REACH`) in the cubic
-    spline interpolation at ``j0 + phase``, and their derivatives, shape (..., 2R + 1)."""
-    j = np.arange(-_SPLINE_REACH, _SPLINE_REACH + 1, dtype=np.float64)
-    x = np.asarray(phase, dtype=np.float64)[..., None] - j  # (..., 2R+1)
-    base = np.floor(x)
-    weight = np.zeros_like(x)
-    slope = np.zeros_like(x)
-    for shift in (-1.0, 0.0, 1.0, 2.0):
-        k = base + shift
-        b, db = _bspline3(x - k)
-        c = np.sqrt(3.0) * _SPLINE_POLE ** np.abs(k)
-        weight += c * b
-        slope += c * db
-    return weight, slope
-
-
 _CORRELATION_REACH = 4
 """Pixels either side whose spline weights enter :func:`_interpolated_noise_correlation`."""
 _SPLINE_TABLE_STEPS = 1024
@@ -428,7 +398,7 @@ def _spline_table() -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     derivative (S + 1,), and the mean variance of the derivative, along any unit
     direction, of unit white pixel noise interpolated in 2-D (about 2.16 per px^2)."""
     phase = np.arange(_SPLINE_TABLE_STEPS + 1) / _SPLINE_TABLE_STEPS
-    weight, slope = _spline_weights(phase)
+    weight, slope = cardinal_weights(phase)
     variance = np.sum(weight**2, axis=-1)
     d_variance = 2.0 * np.sum(weight * slope, axis=-1)
     derivative = float(np.mean(np.sum(slope[:-1] ** 2, axis=-1)) * np.mean(variance[:-1]))
@@ -697,7 +667,7 @@ def _interpolated_noise_correlation(positions: np.ndarray) -> float:
     # _CORRELATION_REACH pixels are below 0.005 and are left out
     reach = _CORRELATION_REACH
     taps = np.arange(-reach, reach + 1)
-    middle = slice(_SPLINE_REACH - reach, _SPLINE_REACH + reach + 1)
+    middle = slice(CARDINAL_REACH - reach, CARDINAL_REACH + reach + 1)
     base = np.floor(positions).astype(np.intp)  # (n, 2)
     wu = _tabulated_weights(positions[:, 0] - base[:, 0])[:, middle]  # (n, 2r+1)
     wv = _tabulated_weights(positions[:, 1] - base[:, 1])[:, middle]

@@ -85,7 +85,7 @@ class ParamBatch(NamedTuple):
         """The batch of a selection of the items (any numpy index of ``index``)."""
         return ParamBatch(self.table, self.index[items])
 
-    def column(self, j: int) -> float | np.ndarray:
+    def per_item(self, j: int) -> float | np.ndarray:
         """Parameter ``j`` of every item: a float when the batch holds one vector."""
         if self.table.shape[0] == 1:
             return float(self.table[0, j])

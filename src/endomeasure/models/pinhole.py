@@ -124,7 +124,7 @@ class PinholeModel(CameraModel):
     def _rays_rows(self, pixels, half, batch):
         """Rays with a parameter vector per pixel (``batch``; index None: its only vector)."""
         group = self.GROUPS[half.label]
-        intrinsics = (batch.column(j) for j in range(group.start, group.stop))
+        intrinsics = (batch.per_item(j) for j in range(group.start, group.stop))
         fx, fy, cx, cy, k1, k2, p1, p2, k3 = intrinsics
         radial = (self.column(batch.table, f"{half.label}_{k}") for k in ("k1", "k2", "k3"))
         r2 = max_monotonic_radius2(*radial)

@@ -196,7 +196,7 @@ class RaytraceModel(CameraModel):
 
     def _rays_rows(self, pixels, half, batch):
         """Rays with a parameter vector per pixel (``batch``; index None: its only vector)."""
-        p = {k: batch.column(self.index(k)) for k in ("fx", "fy", "cx", "cy", *_LENS_TERMS)}
+        p = {k: batch.per_item(self.index(k)) for k in ("fx", "fy", "cx", "cy", *_LENS_TERMS)}
         one = batch.table.shape[0] == 1
         r2 = max_monotonic_radius2(*(self.column(batch.table, k) for k in ("k1", "k2", "k3")))
         und = undistort(

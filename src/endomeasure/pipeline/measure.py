@@ -72,6 +72,7 @@ __all__ = [
     "MeasuredPoint",
     "board_test",
     "load_board_test",
+    "image_noise",
     "load_calibrated_model",
     "measure_points",
     "parse_pixel",
@@ -135,6 +136,20 @@ def parse_sigma(text: str | None) -> float | tuple[float, float] | None:
             hint="give --sigma PX for every coordinate or --sigma U,V, e.g. --sigma 0.013,0.016",
         ) from None
     return checked_sigma(values[0] if len(values) == 1 else values)
+
+
+def image_noise(given, cm, what: str) -> tuple[float | tuple[float, float], str]:
+    """The image noise of a prediction and where it comes from: ``given`` (one number, or
+    u and v, px) or else the calibrated model ``cm``'s residual sigma; ``what`` names
+    the model in the error when it has none."""
+    if given is not None:
+        return checked_sigma(given), "given"
+    if cm is None or cm.sigma_px is None:
+        raise BadInputError(
+            f"{what} carries no calibration residuals to estimate the image noise",
+            hint="give --sigma PX (or U,V)",
+        )
+    return cm.sigma_px, "calibration residuals"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -463,15 +478,8 @@ def measure_points(
         pixel_std[:, 1 if query_half is Half.LEFT else 0] = [m.precision_px for m in matches]
         sigma_px = float(pixel_std.max())
         source = f"match precision, {query_half.label} pixels exact"
-    elif sigma is None:
-        if cm.sigma_px is None:
-            raise BadInputError(
-                f"model {model_name!r} carries no residual variance to estimate the image noise",
-                hint="give --sigma PX",
-            )
-        sigma_px, source = cm.sigma_px, "calibration residuals"
     else:
-        sigma_px, source = checked_sigma(sigma), "given"
+        sigma_px, source = image_noise(sigma, cm, f"model {model_name!r}")
     if pixel_std is None:
         pred = predict_measurement_error(
             model, kind, ql, qr, sigma=sigma_px, param_cov=cm.param_cov, method="ut"

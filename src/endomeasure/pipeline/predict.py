@@ -35,7 +35,6 @@ from typing import Any
 import numpy as np
 
 from endomeasure.errors import BadInputError
-from endomeasure.solvers.uncertainty import checked_sigma
 
 __all__ = [
     "BAND_SIGMAS",
@@ -102,16 +101,11 @@ class NoiseAssumptions:
             )
 
     def sigma_px(self, cm, what: str) -> tuple[float | tuple[float, float], str]:
-        """The image noise to use and where it comes from: the given sigma, or the
-        calibrated model ``cm``'s residual sigma (``what`` names it in the error)."""
-        if self.sigma is not None:
-            return checked_sigma(self.sigma), "given"
-        if cm is None or cm.sigma_px is None:
-            raise BadInputError(
-                f"{what} carries no calibration residuals to estimate the image noise",
-                hint="give --sigma PX (or U,V)",
-            )
-        return cm.sigma_px, "calibration residuals"
+        """The image noise to use and where it comes from
+        (:func:`~endomeasure.pipeline.measure.image_noise`)."""
+        from endomeasure.pipeline.measure import image_noise
+
+        return image_noise(self.sigma, cm, what)
 
     def propagation(self, sigma_px, param_cov) -> dict[str, Any]:
         """Keyword arguments of the predictors (:mod:`endomeasure.measure.predict`)."""
