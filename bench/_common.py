@@ -1,16 +1,205 @@
-"""Helpers shared by the benchmark scripts (not a benchmark itself)."""
+"""Helpers shared by the benchmark and accuracy scripts (not a script itself).
+
+Every script in ``bench/`` has the same shape::
+
+    TARGET = Target("what is measured", "<", 1.0, " s", "issue 7")
+
+    def main(argv=None) -> int:
+        parser = script_parser(__doc__, seed=SEED)     # --quick, --no-write, --seed
+        args = parser.parse_args(argv)
+        report = Report("bench/bench_x.py", args, BENCHMARKS)
+        ... measure ...
+        check = report.check(TARGET, seconds)          # str(check): "met" / "**missed**"
+        return report.finish({"section-name": body})   # writes the doc, exit status
+
+    if __name__ == "__main__":
+        raise SystemExit(main())
+
+``finish`` writes each section between its ``<!-- begin NAME -->`` / ``<!-- end NAME -->``
+markers (unless ``--no-write`` or ``--quick``), adds a "Missed in this run" line to a
+section whose target was missed, prints one line per missed target to stderr and returns
+:data:`EXIT_MISSED` when one was missed (0 otherwise). ``--quick`` runs smaller sizes for
+a smoke run: it never writes the docs, and its targets are reported but not enforced
+(a figure from a smaller run is not the figure the target is about).
+"""
 
 from __future__ import annotations
 
+import argparse
+import operator
 import platform
 import re
+import shlex
 import statistics
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-DOC = ROOT / "docs" / "benchmarks.md"
+BENCHMARKS = ROOT / "docs" / "benchmarks.md"
+ACCURACY = ROOT / "docs" / "accuracy.md"
+DOC = BENCHMARKS  # the default document of write_section
+
+EXIT_MISSED = 3
+"""Exit status of a script that ran to the end but missed a target (an exception gives 1,
+a usage error 2), so ``make bench`` / ``make accuracy`` can tell the two apart."""
+
+_OPS: dict[str, Callable[[float, float], bool]] = {
+    "<": operator.lt,
+    "<=": operator.le,
+    ">": operator.gt,
+    ">=": operator.ge,
+    "==": operator.eq,
+}
+
+
+@dataclass(frozen=True)
+class Target:
+    """A figure a script must reach: ``value OP limit``, and where it is asked for."""
+
+    what: str
+    """What is measured, e.g. "ML triangulation of 100,000 correspondences"."""
+    op: str
+    """One of ``<``, ``<=``, ``>``, ``>=``, ``==``."""
+    limit: float
+    unit: str = ""
+    """Appended to the numbers as written, e.g. " s", " px", "x", " %"."""
+    source: str = ""
+    """The issue or spec that sets the target, e.g. "issue 7"."""
+
+    def __post_init__(self) -> None:
+        if self.op not in _OPS:
+            raise ValueError(f"unknown comparison {self.op!r}; use one of {', '.join(_OPS)}")
+
+    def met_by(self, value: float) -> bool:
+        """Whether ``value`` reaches the target (NaN never does)."""
+        return bool(_OPS[self.op](value, self.limit))
+
+    def __str__(self) -> str:
+        source = f" ({self.source})" if self.source else ""
+        return f"{self.what} {self.op} {self.limit:g}{self.unit}{source}"
+
+
+@dataclass(frozen=True)
+class Check:
+    """One target checked against one run's value."""
+
+    target: Target
+    value: float
+    section: str | None = None
+    """The docs section the figure is written to (None: every section of the report)."""
+
+    @property
+    def met(self) -> bool:
+        return self.target.met_by(self.value)
+
+    def __str__(self) -> str:
+        """The verdict as it reads in a generated section: "met" or "**missed**"."""
+        return "met" if self.met else "**missed**"
+
+    def line(self) -> str:
+        """One line for the terminal: verdict, target, this run's value."""
+        verdict = "met" if self.met else "MISSED"
+        return f"{verdict}: {self.target}; this run {self.value:.4g}{self.target.unit}"
+
+
+def script_parser(
+    doc: str | None, *, seed: int | None = None, work: bool = False
+) -> argparse.ArgumentParser:
+    """The argument parser every script starts from.
+
+    Common options: ``--quick`` (smaller sizes, implies ``--no-write``, targets not
+    enforced), ``--no-write`` (print the sections, leave the docs alone); with ``seed``,
+    ``--seed`` defaulting to it; with ``work``, ``--work DIR`` (folder for sessions and
+    renders, default a temporary one). The first line of ``doc`` is the description,
+    the rest the help's epilog.
+    """
+    first, _, rest = (doc or "").strip().partition("\n")
+    parser = argparse.ArgumentParser(
+        description=first, epilog=rest.strip() or None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="smaller sizes for a smoke run: implies --no-write, targets are not enforced",
+    )
+    parser.add_argument(
+        "--no-write", action="store_true", help="print the results, do not update the docs"
+    )
+    if seed is not None:
+        parser.add_argument("--seed", type=int, default=seed, help=f"random seed ({seed})")
+    if work:
+        parser.add_argument(
+            "--work", type=Path, default=None, help="folder for sessions and renders (temp dir)"
+        )
+    return parser
+
+
+class Report:
+    """The targets one run checks, and the sections it writes."""
+
+    def __init__(
+        self,
+        script: str,
+        args: argparse.Namespace | None = None,
+        doc: Path = BENCHMARKS,
+        *,
+        argv: list[str] | None = None,
+    ) -> None:
+        self.script = script
+        self.doc = Path(doc)
+        self.quick = bool(getattr(args, "quick", False))
+        self.write = not (self.quick or getattr(args, "no_write", False))
+        self.argv = sys.argv[1:] if argv is None else list(argv)
+        self.checks: list[Check] = []
+
+    @property
+    def command(self) -> str:
+        """The command line of this run, as the docs quote it."""
+        return shlex.join(["python", self.script, *self.argv])
+
+    def check(self, target: Target, value: float, section: str | None = None) -> Check:
+        """Record ``value`` against ``target``; the returned check reads "met" / "**missed**"."""
+        result = Check(target, float(value), section)
+        self.checks.append(result)
+        return result
+
+    @property
+    def missed(self) -> list[Check]:
+        return [c for c in self.checks if not c.met]
+
+    def marked(self, name: str, body: str) -> str:
+        """``body`` with a line naming the targets this run missed in section ``name``."""
+        missed = [c for c in self.missed if c.section in (None, name)]
+        if not missed:
+            return body
+        lines = "; ".join(f"{c.target} (this run {c.value:.4g}{c.target.unit})" for c in missed)
+        return f"{body.rstrip()}\n\n**Missed in this run:** {lines}.\n"
+
+    def finish(self, sections: Mapping[str, str]) -> int:
+        """Print (and unless told not to, write) the sections; the exit status.
+
+        Returns :data:`EXIT_MISSED` when a target was missed, 0 otherwise (always 0 with
+        ``--quick``). The docs are written before the status is returned, so a missed
+        target is on record, marked as missed.
+        """
+        for name, body in sections.items():
+            body = self.marked(name, body)
+            if self.write:
+                write_section(name, body, self.doc)
+            else:
+                print(body)
+        for c in self.checks:
+            print(f"{self.script}: {c.line()}", file=sys.stderr)
+        if not self.missed:
+            return 0
+        if self.quick:
+            print(f"{self.script}: --quick, targets not enforced", file=sys.stderr)
+            return 0
+        return EXIT_MISSED
 
 
 def replace_section(text: str, name: str, body: str) -> str:
@@ -23,10 +212,12 @@ def replace_section(text: str, name: str, body: str) -> str:
     return text.rstrip() + "\n\n" + block + "\n"
 
 
-def write_section(name: str, body: str) -> None:
-    """Rewrite one section of docs/benchmarks.md and echo it."""
-    text = DOC.read_text() if DOC.exists() else "# Benchmarks\n"
-    DOC.write_text(replace_section(text, name, body))
+def write_section(name: str, body: str, doc: Path = DOC) -> None:
+    """Rewrite one section of ``doc`` (docs/benchmarks.md by default) and echo it."""
+    doc = Path(doc)
+    title = "# Benchmarks\n" if doc.name == "benchmarks.md" else f"# {doc.stem.title()}\n"
+    text = doc.read_text() if doc.exists() else title
+    doc.write_text(replace_section(text, name, body))
     print(body)
 
 

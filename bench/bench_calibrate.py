@@ -2,7 +2,8 @@
 
 Usage::
 
-    python bench/bench_calibrate.py [--session S.h5] [--images N] [--repeat R] [--no-write]
+    python bench/bench_calibrate.py [--session S.h5] [--images N] [--repeat R] [--seed S]
+        [--quick] [--no-write]
 
 Detections come from a session (``--session``, e.g. a sample session after
 ``endomeasure detect``) or, by default, from N synthetic views of the tests' perturbed
@@ -16,13 +17,12 @@ run, on the same detections, median of R runs:
   covariance);
 - ``calibrate('raytrace', ...)`` from scratch (the whole chain including the pinhole).
 
-Writes the "calibrate" section of docs/benchmarks.md (target: raytrace <= 3x the peer)
-unless ``--no-write``.
+Writes the "calibrate" section of docs/benchmarks.md unless ``--no-write``. Target
+(issue 6): raytrace at most 3x the peer. ``--quick``: 6 views, one run each.
 """
 
 from __future__ import annotations
 
-import argparse
 import platform
 import sys
 import time
@@ -33,17 +33,19 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # for tests.solvers.calibration_data
 
-from _common import write_section  # noqa: E402
+from _common import BENCHMARKS, Report, Target, script_parser  # noqa: E402
 from endomeasure.solvers.calibrate import calibrate  # noqa: E402
 
-TARGET_RATIO = 3.0
+RATIO_TARGET = Target("raytrace calibration time / cv2.stereoCalibrate", "<=", 3.0, "x", "issue 6")
+SEED = 7
+QUICK_IMAGES, QUICK_REPEAT = 6, 1
 
 
-def _synthetic(n_images: int):
+def _synthetic(n_images: int, seed: int):
     from tests.solvers.calibration_data import perturbed_raytrace_truth, synthetic_views
 
     truth = perturbed_raytrace_truth()
-    data = synthetic_views(truth, np.random.default_rng(7), n_images=n_images, noise_px=0.1)
+    data = synthetic_views(truth, np.random.default_rng(seed), n_images=n_images, noise_px=0.1)
     return data.views, data.boards, (640, 480), 320, f"{n_images} synthetic views, 0.1 px noise"
 
 
@@ -77,19 +79,21 @@ def _median_time(fn, repeat):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--session")
-    ap.add_argument("--images", type=int, default=16)
-    ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--no-write", action="store_true")
+    ap = script_parser(__doc__, seed=SEED)
+    ap.add_argument("--session", help="take the detections of this session")
+    ap.add_argument("--images", type=int, default=16, help="synthetic views (16)")
+    ap.add_argument("--repeat", type=int, default=3, help="runs per calibration (3)")
     args = ap.parse_args(argv)
+    report = Report("bench/bench_calibrate.py", args, BENCHMARKS, argv=argv)
+    if args.quick:
+        args.images, args.repeat = min(args.images, QUICK_IMAGES), QUICK_REPEAT
     if args.session:
         from endomeasure.pipeline.calibrate import load_calibration_inputs
 
         views, boards, size, split = load_calibration_inputs(args.session)
         what = f"session {args.session} ({len(views)} views)"
     else:
-        views, boards, size, split, what = _synthetic(args.images)
+        views, boards, size, split, what = _synthetic(args.images, args.seed)
     n_corners = sum(len(v.ids[0]) + len(v.ids[1]) for v in views)
 
     t_cv, (cv_rms, cv_corners) = _median_time(
@@ -117,18 +121,14 @@ def main(argv=None) -> int:
     ]
     for name, t, n, rms, _ in rows:
         lines.append(f"| {name} | {t:.2f} s | {t / t_cv:.2f} | {n} | {rms:.3f} |")
-    verdict = "meets" if ratio <= TARGET_RATIO else "does not meet"
+    check = report.check(RATIO_TARGET, ratio)
     lines += [
         "",
-        f"Target: raytrace at most {TARGET_RATIO:g}x the peer; this run {verdict} it "
-        f"({ratio:.2f}x). The peer's RMS is its own figure (OpenCV's reprojection RMS).",
+        f"Target ({RATIO_TARGET.source}): raytrace at most {RATIO_TARGET.limit:g}x the peer; "
+        f"this run: {check} ({ratio:.2f}x). The peer's RMS is its own figure (OpenCV's "
+        "reprojection RMS).",
     ]
-    section = "\n".join(lines)
-    if args.no_write:
-        print(section)
-    else:
-        write_section("calibrate", section)
-    return 0
+    return report.finish({"calibrate": "\n".join(lines)})
 
 
 if __name__ == "__main__":

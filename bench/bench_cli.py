@@ -1,7 +1,9 @@
 """Start-up time of ``endomeasure --help``, against a bare Python start in the same run.
 
-Writes the ``cli-startup`` section of docs/benchmarks.md. Run with ``make bench`` or
-``.venv/bin/python bench/bench_cli.py``.
+    .venv/bin/python bench/bench_cli.py [--quick] [--no-write]
+
+Writes the ``cli-startup`` section of docs/benchmarks.md (``make bench`` runs it).
+Target (issue 2): ``endomeasure --help`` under 300 ms.
 """
 
 from __future__ import annotations
@@ -14,11 +16,12 @@ import sys
 import time
 from pathlib import Path
 
-from _common import write_section
+from _common import BENCHMARKS, Report, Target, script_parser
 
 RUNS = 15
-TARGET_S = 0.3
+QUICK_RUNS = 3
 SECTION = "cli-startup"
+HELP_TARGET = Target("`endomeasure --help` start-up", "<", 300.0, " ms", "issue 2")
 
 
 def wall_times(argv: list[str], runs: int = RUNS) -> list[float]:
@@ -31,16 +34,19 @@ def wall_times(argv: list[str], runs: int = RUNS) -> list[float]:
     return times
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
+    args = script_parser(__doc__).parse_args(argv)
+    report = Report("bench/bench_cli.py", args, BENCHMARKS, argv=argv)
+    runs = QUICK_RUNS if args.quick else RUNS
     script = shutil.which("endomeasure", path=str(Path(sys.executable).parent))
     help_argv = [script, "--help"] if script else [sys.executable, "-m", "endomeasure", "--help"]
-    bare = statistics.median(wall_times([sys.executable, "-c", "pass"]))
-    numpy = statistics.median(wall_times([sys.executable, "-c", "import numpy"]))
-    help_ = statistics.median(wall_times(help_argv))
-    verdict = "meets" if help_ < TARGET_S else "MISSES"
+    bare = statistics.median(wall_times([sys.executable, "-c", "pass"], runs))
+    numpy = statistics.median(wall_times([sys.executable, "-c", "import numpy"], runs))
+    help_ = statistics.median(wall_times(help_argv, runs))
+    check = report.check(HELP_TARGET, help_ * 1e3)
     body = f"""## `endomeasure --help` start-up
 
-Median wall time of {RUNS} runs each, measured by `bench/bench_cli.py` in one run
+Median wall time of {runs} runs each, measured by `bench/bench_cli.py` in one run
 (Python {platform.python_version()}, {platform.machine()}). The help must come back fast, so
 heavy imports (numpy, cv2, scipy, h5py, matplotlib) happen inside the commands;
 `tests/test_architecture.py` checks that importing the CLI loads none of them.
@@ -51,10 +57,10 @@ heavy imports (numpy, cv2, scipy, h5py, matplotlib) happen inside the commands;
 | `python -c "import numpy"` (for scale) | {numpy * 1e3:.0f} ms | {numpy / bare:.1f} |
 | `endomeasure --help` | {help_ * 1e3:.0f} ms | {help_ / bare:.1f} |
 
-Target: under {TARGET_S * 1e3:.0f} ms; this run {verdict} it.
+Target: under {HELP_TARGET.limit:g} ms ({HELP_TARGET.source}); this run: {check}.
 """
-    write_section(SECTION, body)
+    return report.finish({SECTION: body})
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

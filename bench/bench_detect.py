@@ -24,6 +24,10 @@ Usage::
         sizes) and compared with the exact corner pixels of the truth JSON.
     python bench/bench_detect.py
         Accuracy and throughput, with small sizes (what `make bench` runs).
+
+Common options (before or after the command): ``--quick`` (2 accuracy renders, 4
+images and one run for the throughput; implies ``--no-write``), ``--no-write``. No
+targets: issue 5's detection targets are checked by ``bench/accuracy_detect.py``.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from _common import BENCHMARKS, Report, script_parser
 from endomeasure.conventions import Half
 from endomeasure.features.boards import parse_board_spec
 from endomeasure.features.chessboard import CHESSBOARD_METHODS, detect_chessboard
@@ -263,6 +268,8 @@ def _bare_loop(files: list[str], pattern: tuple[int, int], split: int) -> int:
 
 
 def throughput(files: list[str], board: str, split: int, repeats: int = 3) -> dict:
+    """Images/s of the bare OpenCV loop and of ``detect`` with 1 and 2 workers (best of
+    ``repeats``)."""
     import tempfile
 
     import cv2
@@ -339,11 +346,15 @@ def _noise_free_twin() -> Path:
     return folder
 
 
+DEFAULT_ACCURACY_IMAGES, QUICK_ACCURACY_IMAGES = 6, 2
+DEFAULT_METHODS = "sb,classic-subpix,sb-subpix,sb-classic-symmetry"
+QUICK_THROUGHPUT_IMAGES = 4
+THROUGHPUT_REPEATS = 3
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = script_parser(__doc__)
+    sub = parser.add_subparsers(dest="command")
     acc = sub.add_parser("accuracy", help="compare chessboard detectors against exact corners")
     acc.add_argument("--images", type=int, default=24)
     acc.add_argument("--seed", type=int, default=1)
@@ -354,12 +365,16 @@ def main(argv: list[str] | None = None) -> int:
     thr.add_argument("--split", type=int, default=None)
     ref = sub.add_parser("refinement", help="compare sub-pixel refinements on simulator sets")
     ref.add_argument("--sets", default=None, help="comma-separated simulator output folders")
-    argv = sys.argv[1:] if argv is None else argv
-    if not argv:
-        methods = "sb,classic-subpix,sb-subpix,sb-classic-symmetry"
-        main(["accuracy", "--images", "6", "--methods", methods])
-        return main(["throughput"])
+    for command in (acc, thr, ref):  # the common options after the command too
+        command.add_argument("--quick", action="store_true", default=argparse.SUPPRESS)
+        command.add_argument("--no-write", action="store_true", default=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    common = [flag for flag, on in (("--quick", args.quick), ("--no-write", args.no_write)) if on]
+    if args.command is None:
+        images = QUICK_ACCURACY_IMAGES if args.quick else DEFAULT_ACCURACY_IMAGES
+        status = main(["accuracy", "--images", str(images), "--methods", DEFAULT_METHODS, *common])
+        return max(status, main(["throughput", *common]))
+    report = Report("bench/bench_detect.py", args, BENCHMARKS, argv=argv)
     if args.command == "throughput":
         if args.images:
             files = sorted(
@@ -382,11 +397,14 @@ def main(argv: list[str] | None = None) -> int:
             split = int(load_manifest(samples)["split"])
         else:
             files, board, split = _default_images(args.board)
-        rates = throughput(files, board, split)
+        repeats = THROUGHPUT_REPEATS
+        if args.quick:
+            files, repeats = files[:QUICK_THROUGHPUT_IMAGES], 1
+        rates = throughput(files, board, split, repeats)
         body = (
             "## detect throughput\n\n"
             f"`bench/bench_detect.py throughput`: {len(files)} images of board `{board}`, "
-            f"split {split}; best of 3 runs, {platform.python_version()}, "
+            f"split {split}; best of {repeats} runs, {platform.python_version()}, "
             f"{os.cpu_count()} cores. The bare loop is the same OpenCV calls (imread, "
             "findChessboardCornersSBWithMeta with CALIB_CB_LARGER, cornerSubPix per half) "
             "with nothing around them, one OpenCV thread, as detect's workers.\n\n"
@@ -402,11 +420,7 @@ def main(argv: list[str] | None = None) -> int:
             "measures edge widths and checks each grid's outer lines, and pays process "
             "start-up with 2 workers.\n"
         )
-        sys.path.insert(0, str(Path(__file__).resolve().parent))
-        from _common import write_section
-
-        write_section("detect", body)
-        return 0
+        return report.finish({"detect": body})
     if args.command == "refinement":
         if args.sets:
             roots = [Path(p) for p in args.sets.split(",")]
@@ -433,4 +447,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())
