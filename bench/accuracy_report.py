@@ -1,6 +1,7 @@
 """Measure and predict-error accuracy on a rendered set -> docs/accuracy.md.
 
-    python bench/accuracy_report.py [DATA] [--work DIR]
+    python bench/accuracy_report.py [DATA] [--test-seeds 1,2,3] [--work DIR] [--reuse]
+        [--quick] [--no-write]
 
 DATA is a folder written by `endomeasure simulate` (default: sample_sessions/). The
 script runs the commands a user would: `endomeasure detect` for each board spec of the
@@ -10,12 +11,13 @@ at the measured detection noise for several correlations. Besides the commands i
 the simulator's truth (true corner pixels) for two figures a user could not have: the
 detection noise and its correlations, and the board test on the *true* pixels (the model
 error alone, without image noise). Tables go to the "measure" section of
-docs/accuracy.md (between its markers).
+docs/accuracy.md (between its markers). Targets: issue 7's four per board and zone (every
+cell), issue 8's std band (every zone) and 2-sigma share (``*_TARGET`` below).
+``--quick``: 2 noise draws of the perfect-model reference, no extra test seeds.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import tempfile
@@ -26,12 +28,13 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from _common import machine, replace_section  # noqa: E402
+from _common import ACCURACY, Report, Target, machine, script_parser  # noqa: E402
 from _samples import detect_samples, detection_errors, endomeasure  # noqa: E402
 from endomeasure.simulate.manifest import load_manifest, load_truth  # noqa: E402
 
 EM = [sys.executable, "-m", "endomeasure"]
-ACC = ROOT / "docs" / "accuracy.md"
+SECTION = "measure"
+QUICK_REPS = 2
 RHOS = (0.0, 0.3, 0.6, 0.9)
 STD_BAND = 0.25  # issue 8: actual std within +-25 % of the predicted one, per zone and kind
 MIN_IN_BAND = 0.9  # issue 8: >= 90 % of the errors inside the predicted 2-sigma band
@@ -45,6 +48,16 @@ the corners it predicts (each board in each zone, u and v separately)."""
 SEGMENT_TARGET = 0.5  # issue 7: raytrace segment mean error within 0.5 % of the square
 AREA_TARGET = 1.0  # issue 7: raytrace area mean error within 1 %
 PLANE_TARGET = 0.3  # issue 7: point-to-plane |mean| within 0.3 of its per-zone std
+ISSUE7_TARGET = Target(
+    "raytrace board/zone cells missing an issue 7 target", "==", 0, "", "issue 7"
+)
+STD_BAND_TARGET = Target(
+    f"zones whose actual std is outside +-{100 * STD_BAND:g} % of the predicted", "==", 0, "",
+    "issue 8",
+)  # fmt: skip
+IN_BAND_TARGET = Target(
+    "errors inside the predicted 2-sigma band", ">=", 100 * MIN_IN_BAND, " %", "issue 8"
+)
 
 
 def run(*args) -> dict | None:
@@ -360,10 +373,9 @@ def group_sigma_prediction(
     return {"zones": zones, "within_band": band_num / max(band_den, 1)}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> int:
+    ap = script_parser(__doc__, work=True)
     ap.add_argument("data", nargs="?", default=str(ROOT / "sample_sessions"))
-    ap.add_argument("--work", default=None, help="folder for the session (default: a temp dir)")
     ap.add_argument(
         "--reuse", action="store_true", help="keep the session of an earlier run in --work"
     )
@@ -376,8 +388,10 @@ def main() -> None:
     ap.add_argument(
         "--reps", type=int, default=20, help="noise draws of the perfect-model reference"
     )
-    ap.add_argument("--no-write", action="store_true", help="print, do not update the doc")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    report = Report("bench/accuracy_report.py", args, ACCURACY, argv=argv)
+    if args.quick:
+        args.reps, args.test_seeds = QUICK_REPS, ""
     t0 = time.perf_counter()
     data = Path(args.data).resolve()
     work = Path(args.work or tempfile.mkdtemp(prefix="endomeasure-acc-"))
@@ -523,7 +537,8 @@ def main() -> None:
             f"| {x:+.2f} | {y:+.2f} | {area:+.2f} | {ratio:+.2f} | {'yes' if met else '**no**'} "
             f"| {exact_x} | {exact_met} |"
         )
-    lines += ["", f"Zones meeting all four targets: {n_met} of {len(zones7)}."]
+    issue7 = report.check(ISSUE7_TARGET, len(zones7) - n_met)
+    lines += ["", f"Zones meeting all four targets: {n_met} of {len(zones7)} ({issue7})."]
 
     # ----- pinhole vs raytrace, zone by zone
     lines += [
@@ -575,6 +590,8 @@ def main() -> None:
     p = preds[PRIMARY]
     nz, ok_std, ok_band = zone_verdicts(p["zones"])
     counts = np.array(ref["counts"])
+    std_check = report.check(STD_BAND_TARGET, nz - ok_std)
+    band_check = report.check(IN_BAND_TARGET, 100 * p["within_band"])
     lines += [
         "",
         "### Predicted vs actual (raytrace, UT, the measured detection noise of each board and "
@@ -602,9 +619,11 @@ def main() -> None:
     lines += [
         "",
         f"Errors inside their predicted 2-sigma band: {100 * p['within_band']:.1f} % "
+        f"(target >= {IN_BAND_TARGET.limit:g} %: {band_check}) "
         f"(one sigma {sigma:.4f} px for everything: "
         f"{100 * preds['iid']['within_band']:.1f} %). "
         f"Zones with actual/predicted std within +-{100 * STD_BAND:.0f} %: **{ok_std} of {nz}** "
+        f"(target: every zone; {std_check}) "
         f"(one sigma: {zone_verdicts(preds['iid']['zones'])[1]} of {nz}); with >= "
         f"{100 * MIN_IN_BAND:.0f} % of their errors in the band: {ok_band} of {nz}. "
         "Predictions are made at the pixels of the ideal board at its estimated pose.",
@@ -675,10 +694,7 @@ def main() -> None:
             + " | ".join(f"{v:.2f}" for v in rel)
             + f" | {med:.2f} | {ok_std}/{nz} | {100 * q['within_band']:.1f} % |"
         )
-    body = "\n".join(lines)
-    if not args.no_write:
-        ACC.write_text(replace_section(ACC.read_text(), "measure", body))
-    print(body)
+    status = report.finish({SECTION: "\n".join(lines)})
     (work / "report.json").write_text(
         json.dumps(
             {
@@ -695,7 +711,8 @@ def main() -> None:
         )
     )
     print(f"\nsession, fig4.png, fig5.png and report.json in {work}", file=sys.stderr)
+    return status
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -1,6 +1,6 @@
 """Does the symmetric fit's formal precision explain the test set's detection noise?
 
-    python bench/corner_precision.py WORK [--max-images N] [--twins K]
+    python bench/corner_precision.py WORK [--max-images N] [--twins K] [--quick]
 
 WORK is the folder of a ``bench/accuracy_report.py --work WORK`` run (its session
 ``accuracy.h5`` and, with ``--test-seeds``, its merged set ``data/``; otherwise
@@ -27,11 +27,14 @@ the formal sigma should predict the noise part only.
 The refinement is re-linearised at the detected corners with the local quadratic grid
 map of the detected grid (the detector used its cornerSubPix starts for it: the window
 and curvature differ by a few hundredths of a pixel, a second-order change).
+
+Prints only (a diagnosis; docs/accuracy.md quotes its findings) and has no target;
+``--no-write`` is accepted for the common interface. ``--quick``: 4 test images, at most
+one twin.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +43,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
+from _common import script_parser  # noqa: E402
 from _samples import detection_errors  # noqa: E402
 from endomeasure.simulate.manifest import load_manifest, load_truth  # noqa: E402
 
@@ -47,6 +51,7 @@ ROW_BINS = (0, 12, 23, 34, 45, 1000)  # px from the image's middle row
 COL_BINS = (0, 20, 40, 60, 1000)  # px from the half's middle column
 DISTANCE_BINS = (12, 17, 22, 27, 32, 37, 41)  # mm
 CONTRAST_QUANTILES = (0, 1 / 3, 2 / 3, 1)
+QUICK_MAX_IMAGES = 4
 
 
 @dataclass
@@ -275,14 +280,16 @@ def table(title: str, x: np.ndarray, edges, series, select: np.ndarray) -> None:
         print(f"    {lo:6.4g}-{hi:<6.4g} n={n:5d}  " + " | ".join(parts))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("work", type=Path)
-    ap.add_argument("--max-images", type=int, default=None)
+def main(argv: list[str] | None = None) -> int:
+    ap = script_parser(__doc__)
+    ap.add_argument("work", type=Path, help="the --work folder of bench/accuracy_report.py")
+    ap.add_argument("--max-images", type=int, default=None, help="test images to use (all)")
     ap.add_argument(
         "--twins", type=int, default=0, help="noise-free twins to render (about 2 s each)"
     )
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.max_images, args.twins = QUICK_MAX_IMAGES, min(args.twins, 1)
     c, half_means = collect(args.work, args.max_images)
     m = np.array(half_means)
     mean_u, mean_v = np.sqrt(np.mean(m**2, axis=0))
@@ -335,7 +342,8 @@ def main() -> None:
         table("distance mm", disp["distance"], DISTANCE_BINS, dseries, dsel)
     if args.twins:
         twins(args.work, args.twins)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())
