@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 DEMO_DIR := out/demo
 
-.PHONY: install test demo bench lint samples
+.PHONY: install test demo bench accuracy lint samples
 
 install: $(STAMP)
 
@@ -24,8 +24,35 @@ test: install
 demo: install
 	$(PY) scripts/demo.py $(DEMO_DIR)
 
+# Speed: every bench/bench_*.py rewrites its section of docs/benchmarks.md. Accuracy: the
+# long scripts (about an hour on 2 cores) rewrite theirs in docs/accuracy.md, in this order;
+# corner_precision.py reads accuracy_report.py's work folder and only prints. Both run every
+# script, then fail if one failed or missed its target (exit 3, one line per miss).
+# ARGS goes to every script: `make bench ARGS=--quick` (smoke run, docs untouched),
+# `ARGS=--no-write` (figures printed only).
+ARGS ?=
+ACCURACY_WORK ?= out/accuracy
+ACCURACY_RUNS := \
+	"bench/accuracy_detect.py" \
+	"bench/accuracy_charuco.py" \
+	"bench/accuracy_report.py sample_sessions --test-seeds 1,2,3 --work $(ACCURACY_WORK)" \
+	"bench/corner_precision.py $(ACCURACY_WORK) --twins 8" \
+	"bench/accuracy_scene.py" \
+	"bench/match_precision.py"
+
 bench: install
-	@for script in bench/bench_*.py; do echo "== $$script"; $(PY) $$script || exit $$?; done
+	@failed=""; \
+	for script in bench/bench_*.py; do \
+		echo "== $$script $(ARGS)"; $(PY) $$script $(ARGS) || failed="$$failed $$script"; \
+	done; \
+	if [ -n "$$failed" ]; then echo "make bench: failed or missed a target:$$failed"; exit 1; fi
+
+accuracy: install
+	@failed=""; \
+	for run in $(ACCURACY_RUNS); do \
+		echo "== $$run $(ARGS)"; $(PY) $$run $(ARGS) || failed="$$failed $${run%% *}"; \
+	done; \
+	if [ -n "$$failed" ]; then echo "make accuracy: failed or missed a target:$$failed"; exit 1; fi
 
 lint: install
 	$(VENV)/bin/ruff check src tests bench scripts
