@@ -22,13 +22,13 @@ from tests.solvers.calibration_data import (
 from endomeasure.conventions import Half
 from endomeasure.errors import BadInputError, CalibrationError
 from endomeasure.models import PinholeModel, RaytraceModel
+from endomeasure.models.raytrace_start import prism_tilt_for_deviation
 from endomeasure.solvers.calibrate import (
     CalibrationOptions,
     ViewDetections,
     calibrate,
 )
 from endomeasure.solvers.covariance import marginal_covariance
-from endomeasure.solvers.init_calibration import prism_tilt_for_deviation
 
 SIZE = (640, 480)
 SPLIT = 320
@@ -323,7 +323,7 @@ def test_glass_index_is_held_at_the_given_value(exact_set, exact_raytrace):
         exact_set.boards,
         SIZE,
         SPLIT,
-        CalibrationOptions(glass_index=1.60),
+        CalibrationOptions(values={"n_glass": 1.60}),
         start=exact_raytrace,
     )
     assert res.model.n_glass == 1.60
@@ -337,7 +337,7 @@ def test_free_index_recovers_the_glass_index(exact_set, truth, exact_raytrace):
         exact_set.boards,
         SIZE,
         SPLIT,
-        CalibrationOptions(glass_index=1.55),
+        CalibrationOptions(values={"n_glass": 1.55}),
         start=exact_raytrace,
     )
     res = calibrate(
@@ -346,7 +346,7 @@ def test_free_index_recovers_the_glass_index(exact_set, truth, exact_raytrace):
         exact_set.boards,
         SIZE,
         SPLIT,
-        CalibrationOptions(free_index=True),
+        CalibrationOptions(free=frozenset({"n_glass"})),
         start=start,
     )
     assert "n_glass" in res.free_names

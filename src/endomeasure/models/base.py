@@ -11,7 +11,14 @@ two vectorised questions per half (SPEC section 4):
   per-point :class:`~endomeasure.conventions.Status`.
 
 Points are in the model's reference frame (mm), pixels in full-image coordinates.
-Solvers only use this interface, so a new model never touches them.
+
+Everything else a solver needs is part of the contract too, so solvers and pipelines
+never ask a model's name: the Jacobians with respect to points and parameters
+(:meth:`CameraModel.project_jacobians`), a :class:`~endomeasure.models.projector.Projector`
+that may keep warm-start state during an optimisation (:meth:`CameraModel.projector`),
+parameter units (``PARAM_UNITS``), and the model's own calibration start
+(``SEEDED_FROM``, :meth:`CameraModel.initial_calibration`, see
+:mod:`endomeasure.models.start`).
 """
 
 from __future__ import annotations
@@ -24,8 +31,24 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 
 from endomeasure.conventions import STATUS_DTYPE, Half, Status, in_half
+from endomeasure.models.projector import Projector
+from endomeasure.models.start import Start, StartContext
 
-__all__ = ["CameraModel", "ModelConfig", "ParamBatch", "Projection", "ProjectionJacobian", "Rays"]
+__all__ = [
+    "CameraModel",
+    "ModelConfig",
+    "ParamBatch",
+    "Projection",
+    "ProjectionJacobian",
+    "ProjectionJacobians",
+    "Rays",
+    "FD_STEP_PARAM",
+]
+
+FD_STEP_PARAM = 1e-6
+"""Relative central-difference step for model parameters (times ``max(1, |value|)``):
+truncation error ~h^2 times the third derivative, rounding ~eps/h, both ~1e-10
+relative, far below what a covariance needs."""
 
 
 class Rays(NamedTuple):
@@ -43,6 +66,13 @@ class ProjectionJacobian(NamedTuple):
     pixels: np.ndarray  # (..., 2) px
     status: np.ndarray  # (...,) uint8 Status
     dq_dp: np.ndarray  # (..., 2, 3) px/mm: d pixel / d point, NaN where status != OK
+
+
+class ProjectionJacobians(NamedTuple):
+    pixels: np.ndarray  # (..., 2) px
+    status: np.ndarray  # (...,) uint8 Status
+    dq_dp: np.ndarray  # (..., 2, 3) px/mm, NaN where status != OK
+    dq_dparams: np.ndarray  # (..., 2, F) px per parameter unit, NaN where status != OK
 
 
 class ParamBatch(NamedTuple):
@@ -120,6 +150,10 @@ class ModelConfig:
                 f"image size {width}x{height} with split column {self.split} is not valid"
             )
 
+    def with_fixed(self, fixed) -> ModelConfig:
+        """The same image geometry with other fixed parameters."""
+        return dataclasses.replace(self, fixed=frozenset(fixed))
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "image_size": list(self.image_size),
@@ -136,10 +170,12 @@ class ModelConfig:
 class CameraModel(abc.ABC):
     """Base class of camera models; see the module docstring.
 
-    Subclasses define ``NAME``, ``PARAM_NAMES``, ``GROUPS`` (name -> slice of
-    ``params``), ``DEFAULT_FIXED`` and implement :meth:`_rays` and :meth:`_project`
-    for one half on flat arrays; optionally :meth:`_constraints` (valid parameter
-    values) and a vectorised :meth:`_rays_rows` (one parameter vector per pixel).
+    Subclasses define ``NAME``, ``PARAM_NAMES``, ``PARAM_UNITS``, ``GROUPS`` (name ->
+    slice of ``params``), ``DEFAULT_FIXED``, and implement :meth:`_rays` and
+    :meth:`_project` for one half on flat arrays and :meth:`initial_calibration`.
+    Optional, with generic defaults: :meth:`_constraints` (valid parameter values),
+    :meth:`_rays_rows` (one parameter vector per pixel), closed-form Jacobians
+    (:meth:`_project_jacobian`, :meth:`_project_jacobians`) and ``PROJECTOR``.
     """
 
     params: np.ndarray
@@ -147,8 +183,14 @@ class CameraModel(abc.ABC):
 
     NAME: ClassVar[str]
     PARAM_NAMES: ClassVar[tuple[str, ...]]
+    PARAM_UNITS: ClassVar[dict[str, str]]
+    """Unit of each parameter by name: ``px``, ``mm``, ``rad`` or ``1``."""
     GROUPS: ClassVar[dict[str, slice]] = {}
     DEFAULT_FIXED: ClassVar[frozenset[str]] = frozenset()
+    SEEDED_FROM: ClassVar[str | None] = None
+    """Registry name of the model whose calibration this one's start is built from;
+    None: the start is built from the detections alone."""
+    PROJECTOR: ClassVar[type[Projector]] = Projector
 
     def __post_init__(self):
         params = np.array(self.params, dtype=np.float64).reshape(-1)
@@ -196,6 +238,12 @@ class CameraModel(abc.ABC):
         """The values of one named parameter in parameter vectors ``params`` (..., P)."""
         return params[..., cls.index(name)]
 
+    @classmethod
+    def unit(cls, name: str) -> str:
+        """Unit of a named parameter (``px``, ``mm``, ``rad`` or ``1``)."""
+        cls.index(name)
+        return cls.PARAM_UNITS[name]
+
     def __getattr__(self, name: str):
         # only reached when normal lookup fails: named parameters and groups
         names = type(self).PARAM_NAMES
@@ -217,6 +265,14 @@ class CameraModel(abc.ABC):
     def with_params(self, params: np.ndarray) -> CameraModel:
         """A new model of the same kind and configuration with other parameters."""
         return dataclasses.replace(self, params=np.asarray(params, dtype=np.float64))
+
+    def with_values(self, values: dict[str, float]) -> CameraModel:
+        """A new model with the named parameters of ``values`` that it has set."""
+        p = self.params.copy()
+        for name, value in values.items():
+            if name in self.PARAM_NAMES:
+                p[self.index(name)] = value
+        return self.with_params(p)
 
     def with_config(self, **changes) -> CameraModel:
         return dataclasses.replace(self, config=dataclasses.replace(self.config, **changes))
@@ -308,8 +364,14 @@ class CameraModel(abc.ABC):
             Pixels (px) and a status per point; every non-OK point is NaN, so a
             projection is either right or visibly absent.
         """
-        pixels, status, _ = self._forward(points, half, jacobian=False)
-        return Projection(pixels, status)
+        half = Half.parse(half)
+        flat, shape, status = _flat_input(points, 3, "points")
+        pixels = np.full((flat.shape[0], 2), np.nan)
+        todo = _todo(status)
+        if flat[todo].size:
+            pixels[todo], status[todo] = self._project(flat[todo], half)
+        pixels, status = self.valid_projection(pixels, status, half)
+        return Projection(pixels.reshape(*shape, 2), status.reshape(shape))
 
     def project_jacobian(self, points: np.ndarray, half: Half | str) -> ProjectionJacobian:
         """:meth:`project` and the derivative of each pixel with respect to its point.
@@ -319,31 +381,103 @@ class CameraModel(abc.ABC):
         ProjectionJacobian
             ``dq_dp`` has shape (..., 2, 3), px/mm, NaN where status is not OK.
         """
-        return ProjectionJacobian(*self._forward(points, half, jacobian=True))
-
-    def _forward(self, points, half, jacobian: bool):
         half = Half.parse(half)
         flat, shape, status = _flat_input(points, 3, "points")
-        finite = status == Status.OK
         pixels = np.full((flat.shape[0], 2), np.nan)
-        dq_dp = np.full((flat.shape[0], 2, 3), np.nan) if jacobian else None
-        todo = np.flatnonzero(finite)
-        if todo.size == flat.shape[0]:
-            todo = slice(None)  # the common case: no gather/scatter copies
+        dq_dp = np.full((flat.shape[0], 2, 3), np.nan)
+        todo = _todo(status)
         if flat[todo].size:
-            if jacobian:
-                pixels[todo], status[todo], dq_dp[todo] = self._project_jacobian(flat[todo], half)
-            else:
-                pixels[todo], status[todo] = self._project(flat[todo], half)
+            pixels[todo], status[todo], dq_dp[todo] = self._project_jacobian(flat[todo], half)
+        pixels, status = self.valid_projection(pixels, status, half)
+        dq_dp[status != Status.OK] = np.nan
+        return ProjectionJacobian(
+            pixels.reshape(*shape, 2), status.reshape(shape), dq_dp.reshape(*shape, 2, 3)
+        )
+
+    def project_jacobians(
+        self, points: np.ndarray, half: Half | str, free: np.ndarray | None = None
+    ) -> ProjectionJacobians:
+        """:meth:`project_jacobian` and the derivatives with respect to the parameters.
+
+        Parameters
+        ----------
+        points : ndarray, shape (..., 3), mm
+        half : Half or {'left', 'right'}
+        free : ndarray of int, shape (F,), optional
+            Positions in ``params`` to differentiate by (default: all ``P``).
+
+        Returns
+        -------
+        ProjectionJacobians
+            ``dq_dparams`` has shape (..., 2, F), px per parameter unit; both Jacobians
+            are NaN where status is not OK.
+        """
+        half = Half.parse(half)
+        free = np.arange(self.params.size) if free is None else np.asarray(free, dtype=np.int64)
+        flat, shape, status = _flat_input(points, 3, "points")
+        pixels = np.full((flat.shape[0], 2), np.nan)
+        dq_dp = np.full((flat.shape[0], 2, 3), np.nan)
+        dq_dparams = np.full((flat.shape[0], 2, free.size), np.nan)
+        todo = _todo(status)
+        if flat[todo].size:
+            pixels[todo], status[todo], dq_dp[todo], dq_dparams[todo] = self._project_jacobians(
+                flat[todo], half, free
+            )
+        pixels, status = self.valid_projection(pixels, status, half)
+        bad = status != Status.OK
+        dq_dp[bad] = np.nan
+        dq_dparams[bad] = np.nan
+        return ProjectionJacobians(
+            pixels.reshape(*shape, 2),
+            status.reshape(shape),
+            dq_dp.reshape(*shape, 2, 3),
+            dq_dparams.reshape(*shape, 2, free.size),
+        )
+
+    def valid_projection(
+        self, pixels: np.ndarray, status: np.ndarray, half: Half
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The one rule of a valid projection, applied to a model's raw output.
+
+        ``pixels`` (N, 2) and ``status`` (N,) from :meth:`_project`: an OK pixel outside
+        its half becomes ``OUTSIDE_HALF``, and every pixel whose status is not OK is NaN.
+        Returns new arrays.
+        """
+        status = np.array(status, dtype=STATUS_DTYPE)
+        pixels = np.array(pixels, dtype=np.float64)
         ok = status == Status.OK
         inside = in_half(pixels, half, self.config.split, self.config.image_size)
         status[ok & ~inside] = Status.OUTSIDE_HALF
-        bad = status != Status.OK
-        pixels[bad] = np.nan
-        if jacobian:
-            dq_dp[bad] = np.nan
-            dq_dp = dq_dp.reshape(*shape, 2, 3)
-        return pixels.reshape(*shape, 2), status.reshape(shape), dq_dp
+        pixels[status != Status.OK] = np.nan
+        return pixels, status
+
+    def projector(self, halves: np.ndarray, state: np.ndarray | None = None) -> Projector:
+        """The solver-side projector of this model kind over observations in ``halves``
+        (N,), warm-started from a previous projector's ``state``."""
+        return self.PROJECTOR(self, halves, state)
+
+    @classmethod
+    def initial_calibration(cls, ctx: StartContext, base: Start | None) -> Start:
+        """The model's own calibration start (see :mod:`endomeasure.models.start`).
+
+        Parameters
+        ----------
+        ctx : StartContext
+        base : Start or None
+            The refined start of the ``SEEDED_FROM`` model over the same observations,
+            or None when ``SEEDED_FROM`` is None (start from the detections alone).
+
+        Returns
+        -------
+        Start
+            Model (with ``ctx.config``) and board poses ``T_model_board``.
+
+        Raises
+        ------
+        CalibrationError
+            When no start can be found.
+        """
+        raise NotImplementedError(f"the {cls.NAME} model has no calibration start")
 
     def _project_jacobian(self, points: np.ndarray, half: Half):
         """Default: central differences of :meth:`_project`; models override it with
@@ -360,6 +494,33 @@ class CameraModel(abc.ABC):
             status = np.where((status == Status.OK) & ((st_p != 0) | (st_m != 0)),
                               Status.NOT_CONVERGED, status)  # fmt: skip
         return pixels, status, dq_dp
+
+    def _project_jacobians(self, points: np.ndarray, half: Half, free: np.ndarray):
+        """Default: :meth:`_project_jacobian` and central differences of :meth:`_project`
+        over the parameters ``free``, one-sided at the edge of the valid domain.
+        Returns pixels (N, 2), status (N,), dq_dp (N, 2, 3), dq_dparams (N, 2, F)."""
+        pixels, status, dq_dp = self._project_jacobian(points, half)
+        dq_dparams = np.empty((points.shape[0], 2, free.size))
+        for k, i in enumerate(free):
+            step = FD_STEP_PARAM * max(1.0, abs(float(self.params[i])))
+            plus, minus = (self._stepped_pixels(points, half, i, sign * step) for sign in (1, -1))
+            if plus is not None and minus is not None:
+                dq_dparams[:, :, k] = (plus - minus) / (2.0 * step)
+            elif plus is not None:
+                dq_dparams[:, :, k] = (plus - pixels) / step
+            else:
+                dq_dparams[:, :, k] = (pixels - minus) / step
+        return pixels, status, dq_dp, dq_dparams
+
+    def _stepped_pixels(self, points, half, i: int, step: float) -> np.ndarray | None:
+        """:meth:`_project` with parameter ``i`` moved by ``step``; None when that leaves
+        the valid domain."""
+        p = self.params.copy()
+        p[i] += step
+        try:
+            return self.with_params(p)._project(points, half)[0]
+        except ValueError:
+            return None
 
     @abc.abstractmethod
     def _rays(self, pixels: np.ndarray, half: Half) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -383,6 +544,12 @@ class CameraModel(abc.ABC):
     @abc.abstractmethod
     def _project(self, points: np.ndarray, half: Half) -> tuple[np.ndarray, np.ndarray]:
         """Pixels of finite points, shape (N, 3) -> (N, 2), (N,); half check is done here."""
+
+
+def _todo(status: np.ndarray):
+    """Rows still OK after the input check: a slice when all are (no gather copies)."""
+    todo = np.flatnonzero(status == Status.OK)
+    return slice(None) if todo.size == status.size else todo
 
 
 def _flat_input(values, width: int, name: str) -> tuple[np.ndarray, tuple, np.ndarray]:

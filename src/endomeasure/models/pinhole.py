@@ -20,12 +20,13 @@ from endomeasure.geometry.distortion import (
     max_monotonic_radius2,
     undistort,
 )
-from endomeasure.geometry.rotations import rotation_matrix
+from endomeasure.geometry.rotations import rotation_jacobian, rotation_matrix, skew
 from endomeasure.models.base import CameraModel, ParamBatch
+from endomeasure.models.lens import LENS_NAMES, lens_pixels_and_jacobians
 
 __all__ = ["PinholeModel", "project_pinhole", "UNDISTORT_TOL_PX"]
 
-_INTRINSICS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+_INTRINSICS = LENS_NAMES
 UNDISTORT_TOL_PX = 1e-9  # px; well below the 1e-6 px the spec requires of the inverse
 
 
@@ -73,6 +74,15 @@ class PinholeModel(CameraModel):
         + tuple(f"right_{n}" for n in _INTRINSICS)
         + ("rx", "ry", "rz", "tx", "ty", "tz")
     )
+    PARAM_UNITS: ClassVar[dict[str, str]] = {
+        **{
+            f"{h}_{n}": "px" if n in ("fx", "fy", "cx", "cy") else "1"
+            for h in ("left", "right")
+            for n in _INTRINSICS
+        },
+        **dict.fromkeys(("rx", "ry", "rz"), "rad"),
+        **dict.fromkeys(("tx", "ty", "tz"), "mm"),
+    }
     GROUPS: ClassVar[dict[str, slice]] = {
         "left": slice(0, 9),
         "right": slice(9, 18),
@@ -104,6 +114,10 @@ class PinholeModel(CameraModel):
     def _project_jacobian(self, points, half):
         cam = self._to_camera(points, half)
         pixels, status = project_pinhole(cam, self.intrinsics(half))
+        return pixels, status, self._point_jacobian(cam, half)
+
+    def _point_jacobian(self, cam: np.ndarray, half: Half) -> np.ndarray:
+        """d pixel / d point (N, 2, 3) of camera-frame points ``cam`` (N, 3)."""
         fx, fy, _, _, k1, k2, p1, p2, k3 = self.intrinsics(half)
         inv_z = 1.0 / cam[:, 2]
         x, y = cam[:, 0] * inv_z, cam[:, 1] * inv_z
@@ -116,7 +130,38 @@ class PinholeModel(CameraModel):
         dq_dp = np.array([fx, fy])[:, None] * (D @ dn)
         if half is Half.RIGHT:
             dq_dp = dq_dp @ self.pose_right_left()[0]
-        return pixels, status, dq_dp
+        return dq_dp
+
+    def _project_jacobians(self, points, half, free):
+        """Closed form: the half's intrinsics through :func:`lens_pixels_and_jacobians`,
+        the right camera's pose by ``d(R X + t) = -[R X]_x J(rvec) d rvec + d t``."""
+        cam = self._to_camera(points, half)
+        pixels, status = project_pinhole(cam, self.intrinsics(half))
+        dq_dp = self._point_jacobian(cam, half)
+        zs = np.where(cam[:, 2] > 0, cam[:, 2], 1.0)
+        x, y = cam[:, 0] / zs, cam[:, 1] / zs
+        _, dq_dxy, dq_dintr = lens_pixels_and_jacobians(x, y, self.intrinsics(half))
+        dq_dall = np.zeros((points.shape[0], 2, self.params.size))
+        dq_dall[:, :, self.GROUPS[half.label]] = dq_dintr
+        if half is Half.RIGHT:
+            dxy_dcam = np.zeros((points.shape[0], 2, 3))
+            dxy_dcam[:, 0, 0] = dxy_dcam[:, 1, 1] = 1.0 / zs
+            dxy_dcam[:, 0, 2] = -x / zs
+            dxy_dcam[:, 1, 2] = -y / zs
+            dq_dcam = dq_dxy @ dxy_dcam
+            R = self.pose_right_left()[0]
+            dcam_drvec = -skew(points @ R.T) @ rotation_jacobian(np.array(self.rvec_right_left))
+            dq_dall[:, :, self.GROUPS["rvec_right_left"]] = dq_dcam @ dcam_drvec
+            dq_dall[:, :, self.GROUPS["t_right_left"]] = dq_dcam
+        return pixels, status, dq_dp, dq_dall[:, :, free]
+
+    @classmethod
+    def initial_calibration(cls, ctx, base):
+        """Each half calibrated on its own with OpenCV, combined into a pair
+        (:func:`endomeasure.models.pinhole_start.initial_pinhole`)."""
+        from endomeasure.models.pinhole_start import initial_pinhole
+
+        return initial_pinhole(ctx)
 
     def _rays(self, pixels, half):
         return self._rays_rows(pixels, half, ParamBatch(self.params[None], None))

@@ -32,9 +32,24 @@ from endomeasure.geometry.distortion import (
     undistort,
 )
 from endomeasure.models import _prism_kernels
-from endomeasure.models.base import CameraModel, ParamBatch
+from endomeasure.models.base import FD_STEP_PARAM, CameraModel, ParamBatch
+from endomeasure.models.lens import LENS_NAMES, lens_pixels_and_jacobians
+from endomeasure.models.projector import Projector, _zero_where_lost
 
-__all__ = ["RaytraceModel", "PrismTrace", "plane_normal", "AIM_TOL_PX", "AIM_MAX_ITER"]
+__all__ = [
+    "RaytraceModel",
+    "PrismTrace",
+    "Aim",
+    "aim_rays",
+    "plane_normal",
+    "AIM_TOL_PX",
+    "AIM_MAX_ITER",
+    "DEFAULT_GLASS_INDEX",
+]
+
+DEFAULT_GLASS_INDEX = 1.5168
+"""N-BK7 at the helium d-line (587.6 nm), the usual prism glass: the start value of
+``n_glass`` unless the user gives one."""
 
 AIM_TOL_PX = 1e-8
 """Ray aiming stops when the pixel step falls below this (px); the iteration converges
@@ -63,6 +78,23 @@ class PrismTrace(NamedTuple):
     origins: np.ndarray  # (N, 3) mm, on the half's front face
     directions: np.ndarray  # (N, 3) unit
     status: np.ndarray  # (N,) uint8
+
+
+class Aim(NamedTuple):
+    """Ray aiming's answer per point (:func:`aim_rays`)."""
+
+    x: np.ndarray  # (N,) undistorted normalised lens coordinates, NaN where not OK
+    y: np.ndarray  # (N,)
+    status: np.ndarray  # (N,) uint8 Status
+    dxy_dp: np.ndarray | None  # (N, 2, 3) d(x, y)/d point, 1/mm, when asked for
+    pixels: np.ndarray | None  # (N, 2) px, when asked for
+
+
+_SHARED_TRACE_PARAMS = frozenset({"rear_a", "rear_b", "rear_d", "n_glass"})
+_TRACE_PARAMS = {
+    half: _SHARED_TRACE_PARAMS | {f"{half.label}_{k}" for k in "abd"} for half in Half
+}
+"""The parameters a half's prism trace depends on (the other front face does not count)."""
 
 
 class _AimMap(NamedTuple):
@@ -111,6 +143,60 @@ def _trace(
     return PrismTrace(origins, directions, status)
 
 
+class _AimingProjector(Projector):
+    """Projection by ray aiming warm-started from the previous call's lens coordinates.
+
+    During an optimisation the last solution is a few hundredths of a pixel from the
+    next one, so two or three traces per point suffice. The start maps of the first
+    model serve every later trial model: they only seed the iteration, and rebuilding
+    them per trial step would dominate the fit. The state is the lens coordinates.
+    """
+
+    def __init__(self, template, halves, state=None):
+        super().__init__(template, halves)
+        self._xy = np.full((self.halves.size, 2), np.nan)
+        if state is not None:
+            self._xy[:] = state
+        self._aim_maps = {}
+
+    def state(self):
+        return self._xy.copy()
+
+    def _aim(self, model, points, half, idx, jacobian=False) -> Aim:
+        try:
+            if half not in self._aim_maps:
+                self._aim_maps[half] = model.aim_map(half)
+            return aim_rays(
+                model, points, half, self._aim_maps[half], jacobian, self._xy[idx], pixels=True
+            )
+        except ValueError:  # a trial model so wild that the half has no valid rays
+            n = idx.size
+            nan = np.full(n, np.nan)
+            status = np.full(n, Status.NOT_CONVERGED, dtype=STATUS_DTYPE)
+            return Aim(nan, nan, status, np.full((n, 2, 3), np.nan), np.full((n, 2), np.nan))
+
+    def project(self, model, points):
+        pixels = np.full((points.shape[0], 2), np.nan)
+        for half, idx in self.groups:
+            aim = self._aim(model, points[idx], half, idx)
+            pixels[idx], status = model.valid_projection(aim.pixels, aim.status, half)
+            ok = status == Status.OK
+            self._xy[idx] = np.where(ok[:, None], np.stack([aim.x, aim.y], axis=-1), np.nan)
+        return pixels, np.all(np.isfinite(pixels), axis=-1)
+
+    def jacobian(self, model, points):
+        dq_dparams = np.zeros((points.shape[0], 2, self.free.size))
+        dq_dp = np.zeros((points.shape[0], 2, 3))
+        for half, idx in self.groups:
+            idx = idx[np.isfinite(self._xy[idx, 0])]  # the corners the last projection kept
+            if idx.size:
+                aim = self._aim(model, points[idx], half, idx, jacobian=True)  # at the solution
+                dq_dp[idx], dq_dparams[idx] = model._aimed_jacobians(
+                    aim, points[idx], half, self.free
+                )
+        return _zero_where_lost(dq_dparams, dq_dp)
+
+
 class RaytraceModel(CameraModel):
     """Lens camera + biprism traced with vector Snell's law (19 parameters)."""
 
@@ -129,7 +215,15 @@ class RaytraceModel(CameraModel):
         "left_face": slice(12, 15),
         "right_face": slice(15, 18),
     }
+    PARAM_UNITS: ClassVar[dict[str, str]] = {
+        **{n: "px" if n in ("fx", "fy", "cx", "cy") else "1" for n in LENS_NAMES},
+        **{f"{face}_{k}": "mm" if k == "d" else "rad"
+           for face in ("rear", "left", "right") for k in "abd"},
+        "n_glass": "1",
+    }  # fmt: skip
     DEFAULT_FIXED: ClassVar[frozenset[str]] = frozenset({"k3", "p1", "p2", "n_glass"})
+    SEEDED_FROM: ClassVar[str | None] = "pinhole"
+    PROJECTOR: ClassVar[type[Projector]] = _AimingProjector
 
     def __post_init__(self):
         super().__post_init__()
@@ -214,15 +308,87 @@ class RaytraceModel(CameraModel):
 
     # ----- forward projection by ray aiming ---------------------------------------------
     def _project(self, points, half):
-        _, _, status, pixels = aim_rays(self, points, half, pixels=True)
-        return pixels, status
+        aim = aim_rays(self, points, half, pixels=True)
+        return aim.pixels, aim.status
 
     def _project_jacobian(self, points, half):
-        x, y, status, dxy_dp, pixels = aim_rays(self, points, half, jacobian=True, pixels=True)
-        j11, j12, j21, j22 = distort_jacobian(x, y, self._lens_coeffs())
+        aim = aim_rays(self, points, half, jacobian=True, pixels=True)
+        return aim.pixels, aim.status, self._point_jacobian(aim)
+
+    def _point_jacobian(self, aim: Aim) -> np.ndarray:
+        """d pixel / d point (N, 2, 3) at the aimed lens coordinates."""
+        j11, j12, j21, j22 = distort_jacobian(aim.x, aim.y, self._lens_coeffs())
         D = np.stack([np.stack([j11, j12], -1), np.stack([j21, j22], -1)], -2)
-        dq_dp = np.array([self.fx, self.fy])[:, None] * (D @ dxy_dp)
-        return pixels, status, dq_dp
+        return np.array([self.fx, self.fy])[:, None] * (D @ aim.dxy_dp)
+
+    def _project_jacobians(self, points, half, free):
+        aim = aim_rays(self, points, half, jacobian=True, pixels=True)
+        return aim.pixels, aim.status, *self._aimed_jacobians(aim, points, half, free)
+
+    def _aimed_jacobians(self, aim: Aim, points, half, free) -> tuple[np.ndarray, np.ndarray]:
+        """``dq_dp`` (N, 2, 3) and ``dq_dparams`` (N, 2, F) at converged aims.
+
+        Notes
+        -----
+        With ``G(x, theta, P)`` the offset from P of the ray traced from lens coordinates
+        ``x``, taken at the depth of P, aiming solves ``G = 0``; by the implicit-function
+        rule ``dx/dtheta = -G_x^-1 G_theta``. The kernel's ``dxy_dp = -G_x^-1 G_P`` with
+        ``G_P = [-I | t]`` already holds ``G_x^-1`` in its first two columns, so only
+        ``G_theta`` is differenced (closed-form traces, never the aiming). Lens
+        parameters enter the pixel directly: ``q = f distort(x) + c``.
+        """
+        dq_dp = self._point_jacobian(aim)
+        good = np.isfinite(aim.x) & np.isfinite(aim.y)
+        x, y = np.where(good, aim.x, 0.0), np.where(good, aim.y, 0.0)
+        lens = [getattr(self, n) for n in LENS_NAMES]
+        _, dq_dxy, dq_dlens = lens_pixels_and_jacobians(x, y, lens)
+        dq_dparams = np.zeros((points.shape[0], 2, free.size))
+        inverse_G_x = aim.dxy_dp[:, :, :2]
+        traced = _TRACE_PARAMS[half]
+        for k, i in enumerate(free):
+            name = self.PARAM_NAMES[i]
+            if name in LENS_NAMES:
+                dq_dparams[:, :, k] = dq_dlens[:, :, LENS_NAMES.index(name)]
+            elif name in traced:
+                G_theta = self._miss_derivative(i, x, y, half, points)
+                dq_dparams[:, :, k] = -np.einsum("nij,njk,nk->ni", dq_dxy, inverse_G_x, G_theta)
+        dq_dparams[~good] = np.nan
+        return dq_dp, dq_dparams
+
+    def _miss(self, x, y, half, points) -> tuple[np.ndarray, np.ndarray]:
+        """``G`` (N, 2) mm: where the ray of lens coordinates (x, y) crosses the depth of
+        each point, minus the point; and whether it is valid (N,)."""
+        tr = self.trace(x, y, half)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (points[:, 2] - tr.origins[:, 2]) / tr.directions[:, 2]
+        G = tr.origins[:, :2] + s[:, None] * tr.directions[:, :2] - points[:, :2]
+        return G, (tr.status == Status.OK) & (s > 0) & np.all(np.isfinite(G), axis=-1)
+
+    def _miss_derivative(self, i: int, x, y, half, points) -> np.ndarray:
+        """``dG / d params[i]`` (N, 2) by central differences, one-sided at the edge of
+        the valid domain (e.g. a face distance within a step of zero)."""
+        step = FD_STEP_PARAM * max(1.0, abs(float(self.params[i])))
+        sides = []
+        for sign in (1.0, -1.0):
+            p = self.params.copy()
+            p[i] += sign * step
+            try:
+                sides.append(self.with_params(p)._miss(x, y, half, points)[0])
+            except ValueError:
+                sides.append(None)
+        plus, minus = sides
+        if plus is not None and minus is not None:
+            return (plus - minus) / (2.0 * step)
+        centre = self._miss(x, y, half, points)[0]
+        return (plus - centre) / step if plus is not None else (centre - minus) / step
+
+    @classmethod
+    def initial_calibration(cls, ctx, base):
+        """From the refined ``pinhole`` pair, or the user's seed with its poses
+        (:func:`endomeasure.models.raytrace_start.seed_raytrace`)."""
+        from endomeasure.models.raytrace_start import seed_raytrace
+
+        return seed_raytrace(ctx, base)
 
     def with_params(self, params: np.ndarray) -> RaytraceModel:
         """A new model with other parameters.
@@ -360,8 +526,8 @@ def _build_aim_table(model, half, start: _AimMap, wx, wy, step: float) -> dict:
     gq, gy, gx = np.meshgrid(qs, lo[1] + step * np.arange(n_y),
                              lo[0] + step * np.arange(n_x), indexing="ij")  # fmt: skip
     nodes = start.centre + np.stack([gx, gy, np.ones_like(gx)], axis=-1) / gq[..., None]
-    x, y, status = aim_rays(model, nodes.reshape(-1, 3), half, start)
-    table = np.stack([x, y], axis=-1).reshape(_LUT_SLICES, n_y, n_x, 2)
+    aimed = aim_rays(model, nodes.reshape(-1, 3), half, start)
+    table = np.stack([aimed.x, aimed.y], axis=-1).reshape(_LUT_SLICES, n_y, n_x, 2)
     return dict(
         lut=np.ascontiguousarray(table, dtype=np.float32),  # a start only: halves the cache load
         lut_origin=np.array([lo[0], lo[1], q_far]),
@@ -377,7 +543,7 @@ def aim_rays(
     jacobian: bool = False,
     start: np.ndarray | None = None,
     pixels: bool = False,
-) -> tuple[np.ndarray, ...]:
+) -> Aim:
     """Lens coordinates whose traced ray passes through each point (ray aiming).
 
     Parameters
@@ -400,13 +566,13 @@ def aim_rays(
 
     Returns
     -------
-    x, y : ndarray, shape (N,)
-        Undistorted normalised lens coordinates, NaN where status is not OK.
-    status : ndarray, shape (N,), uint8
-        ``BEHIND`` for points not in front of the half's front face, ``NOT_CONVERGED``
-        where the iteration did not reach ``AIM_TOL_PX`` in ``AIM_MAX_ITER`` traces, or
-        the trace failure (``TOTAL_INTERNAL_REFLECTION``) where no step keeps the ray
-        inside the prism.
+    Aim
+        ``x, y`` (N,): undistorted normalised lens coordinates, NaN where status is not
+        OK; ``status`` (N,): ``BEHIND`` for points not in front of the half's front face,
+        ``NOT_CONVERGED`` where the iteration did not reach ``AIM_TOL_PX`` in
+        ``AIM_MAX_ITER`` traces, or the trace failure (``TOTAL_INTERNAL_REFLECTION``)
+        where no step keeps the ray inside the prism; ``dxy_dp`` and ``pixels`` when
+        asked for, else None.
 
     Notes
     -----
@@ -436,9 +602,4 @@ def aim_rays(
         AIM_TOL_PX / model.fx, AIM_TOL_PX / model.fy, AIM_MAX_ITER,
         xy, status, dxy_dp, lens, r2_max, q,
     )  # fmt: skip
-    out = (xy[:, 0], xy[:, 1], status)
-    if jacobian:
-        out += (dxy_dp,)
-    if pixels:
-        out += (q,)
-    return out
+    return Aim(xy[:, 0], xy[:, 1], status, dxy_dp if jacobian else None, q if pixels else None)

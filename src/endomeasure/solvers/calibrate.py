@@ -1,20 +1,15 @@
 """Calibration of a split-sensor camera model from images of flat targets (SPEC 6).
 
 :func:`calibrate` fits the free parameters of a camera model and one board pose per
-image by minimising the reprojection error in pixels over every detected corner of
-every image in both halves (maximum likelihood under isotropic Gaussian pixel noise),
-the same cost for every model, so models are compared on the same footing.
+image by bundle adjustment (:mod:`endomeasure.solvers.bundle`): the reprojection error
+in pixels over every detected corner of every image in both halves, the same cost for
+every model, so models are compared on the same footing.
 
-Initialisation never needs prism design data (:mod:`endomeasure.solvers.init_calibration`):
-per-half OpenCV calibration -> the ``pinhole`` pair -> the ``raytrace`` model seeded
-from it (or from a user's seed with nominal design values) -> joint refinement.
-
-Outliers: after a fit, a corner whose residual length exceeds ``outlier_sigmas`` times
-the robust per-axis noise ``sigma = 1.4826 * median(|r|)`` (over all residual
-components; never below ``OUTLIER_FLOOR_PX``) is reported and dropped, and the fit is
-repeated from its solution until no new outlier appears (at most
-``max_outlier_rounds`` rounds). For Gaussian noise a 5-sigma residual length has
-probability exp(-12.5) ~ 4e-6, so clean data lose nothing.
+The start is the model's own (:meth:`~endomeasure.models.base.CameraModel.initial_calibration`):
+a model built from the detections alone (``SEEDED_FROM`` None) gets one joint pass
+before the outlier rule sees it; a model seeded from another one is started from that
+model's refined calibration, which is computed first (or taken from ``start``). No
+prism design data is needed, and no model is known here by name.
 
 Refusals (:class:`~endomeasure.errors.CalibrationError`): too few images or corners,
 degenerate geometry (all boards parallel, or all at one distance), an optimiser that
@@ -31,17 +26,17 @@ import numpy as np
 
 from endomeasure.conventions import Half, in_half
 from endomeasure.errors import BadInputError, CalibrationError
-from endomeasure.geometry.rotations import rotation_jacobian, rotation_matrix, skew
-from endomeasure.models import CameraModel, model_class
+from endomeasure.geometry.rotations import rotation_matrix
+from endomeasure.models import CameraModel, ModelConfig, model_class
+from endomeasure.models.start import Observations, Start, StartContext
+from endomeasure.solvers.bundle import OUTLIER_FLOOR_PX, BundleProblem, fit_with_outliers, refine
 from endomeasure.solvers.covariance import marginal_covariance
-from endomeasure.solvers.reprojection import projector_for
 
 __all__ = [
     "ViewDetections",
     "CalibrationOptions",
     "CalibrationResult",
     "calibrate",
-    "DEFAULT_GLASS_INDEX",
     "MIN_IMAGES",
     "MIN_CORNERS_PER_HALF",
     "MIN_STEREO_IMAGES",
@@ -50,8 +45,6 @@ __all__ = [
     "OUTLIER_FLOOR_PX",
 ]
 
-DEFAULT_GLASS_INDEX = 1.5168
-"""N-BK7 at the helium d-line (587.6 nm), the usual prism glass; override with ``glass_index``."""
 MIN_CORNERS_PER_HALF = 6
 """A half-view with fewer corners is not used: a plane pose needs four points and
 OpenCV's per-half initialisation needs a few more to be stable."""
@@ -63,20 +56,11 @@ MIN_STEREO_IMAGES = 2
 MIN_TILT_SPREAD_DEG = 10.0
 """Boards whose apparent normals (see ``_apparent_tilt_spread``) all lie within this
 angle count as parallel: the focal length then trades against the distance (Zhang 2000,
-section 3.3). Parallel boards seen through the test prism show about 6 degrees, boards
-tilted by +-3 degrees about 14, the paper's +-30 degrees about 90."""
+section 3.3). Boards tilted by +-3 degrees show about 14 degrees, the paper's +-30
+degrees about 90; lens and prism distortion give parallel boards a few degrees."""
 MIN_DISTANCE_RATIO = 1.15
 """Boards whose farthest distance is less than this ratio times the nearest count as
 one distance: the prism's non-central geometry needs a range of depths."""
-OUTLIER_FLOOR_PX = 0.1
-"""Residuals below this are never called outliers: no corner detector is more accurate,
-and exact synthetic data would otherwise make rounding noise look like outliers."""
-FAILED_RESIDUAL_PX = 1e3
-"""Residual given to a corner whose projection fails during the optimisation (ray aiming
-lost, behind the probe): large and constant, so steps into failure are rejected."""
-INVALID_MODEL_RESIDUAL_PX = 1e6
-"""Residual of every corner for a trial step outside the model's valid domain (a face
-behind the lens): larger than any real cost, so such a step is never accepted."""
 CONVERGED_RMS_LIMIT_PX = 20.0
 """A fit whose RMS stays above this has not found the board geometry (a wrong local
 minimum or corrupted detections), whatever the optimiser's status says."""
@@ -114,27 +98,26 @@ class CalibrationOptions:
 
     Attributes
     ----------
-    glass_index : float or None
-        Refractive index of the prism (``raytrace``); None keeps the seed's value or
-        :data:`DEFAULT_GLASS_INDEX`.
-    free_index : bool
-        Estimate ``n_glass`` instead of holding it fixed (it is strongly correlated with
-        the face tilts; see the correlations in the result).
+    values : mapping of str to float
+        Parameter values to start from and, when fixed, keep (e.g. ``{"n_glass": 1.6}``);
+        a model without such a parameter ignores it.
+    free : frozenset of str
+        Parameters to estimate although the model holds them fixed by default (e.g.
+        ``n_glass``, strongly correlated with the face tilts: see the correlations).
     seed : mapping or None
-        A ``raytrace`` model dict (:meth:`CameraModel.to_dict`) with nominal design
-        values, used instead of the seeding from the pinhole pair.
+        A model dict (:meth:`CameraModel.to_dict`) of the model being calibrated, with
+        nominal design values, used by its initialiser instead of the analytic start.
     fixed : frozenset of str or None
-        Parameters held fixed; None means the model's ``DEFAULT_FIXED`` (with
-        ``n_glass`` freed by ``free_index``).
+        Parameters held fixed; None means the model's ``DEFAULT_FIXED`` minus ``free``.
     outlier_sigmas : float
-        Outlier threshold in robust standard deviations (module docstring).
+        Outlier threshold in robust standard deviations (:mod:`endomeasure.solvers.bundle`).
     max_outlier_rounds : int
     max_nfev : int
         Residual evaluations allowed per optimisation.
     """
 
-    glass_index: float | None = None
-    free_index: bool = False
+    values: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    free: frozenset[str] = frozenset()
     seed: Mapping[str, Any] | None = None
     fixed: frozenset[str] | None = None
     outlier_sigmas: float = 5.0
@@ -238,11 +221,6 @@ class CalibrationResult:
         return self.model.PARAM_NAMES
 
     @property
-    def free_values(self) -> np.ndarray:
-        """Values of the free parameters, shape (F,)."""
-        return np.array([getattr(self.model, n) for n in self.free_names])
-
-    @property
     def std(self) -> np.ndarray:
         """Standard deviations of the free parameters, shape (F,)."""
         return np.sqrt(np.diag(self.covariance))
@@ -326,43 +304,11 @@ class CalibrationResult:
         return np.einsum("nij,nj->ni", R, self.obs_board_points) + self.tvecs[self.obs_image]
 
     @property
-    def image_distances(self) -> np.ndarray:
-        """Distance from the model origin to each image's corner centroid, shape (I,), mm."""
-        P = self.obs_points
-        out = np.full(len(self.image_names), np.nan)
-        for i in range(out.size):
-            sel = self.obs_image == i
-            if np.any(sel):
-                out[i] = float(np.linalg.norm(P[sel].mean(axis=0)))
-        return out
-
-    @property
     def converged(self) -> bool:
         return self.status > 0
 
 
 # ----- observations -----------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class Observations:
-    """Flattened corner observations (one row per corner per half per image)."""
-
-    image_names: tuple[str, ...]
-    image_boards: tuple[str, ...]
-    image: np.ndarray  # (M,) int
-    half: np.ndarray  # (M,) int8
-    ids: np.ndarray  # (M,) int
-    board_points: np.ndarray  # (M, 3) mm
-    pixels: np.ndarray  # (M, 2) px
-    skipped: tuple[str, ...]
-
-    @property
-    def n_images(self) -> int:
-        return len(self.image_names)
-
-    def subset(self, image: int, half: int) -> np.ndarray:
-        return np.flatnonzero((self.image == image) & (self.half == half))
 
 
 def _collect(
@@ -530,258 +476,7 @@ def _check_distances(obs: Observations, rvecs: np.ndarray, tvecs: np.ndarray) ->
         )
 
 
-# ----- the optimisation ---------------------------------------------------------------------
-
-
-@dataclasses.dataclass
-class _Fit:
-    model: CameraModel
-    rvecs: np.ndarray
-    tvecs: np.ndarray
-    status: int = 0
-    message: str = ""
-    nfev: int = 0
-    state: np.ndarray | None = None  # projector warm-start state per observation
-
-
-class _Problem:
-    """The bundle problem over a subset of observations: parameters + one pose per image."""
-
-    def __init__(
-        self, model: CameraModel, obs: Observations, use: np.ndarray, state: np.ndarray | None
-    ):
-        self.template = model
-        self.free = np.flatnonzero(model.free_mask)
-        self.F = self.free.size
-        self.rows = np.flatnonzero(use)
-        images = np.unique(obs.image[self.rows])
-        self.images = images
-        self.pose_of_obs = np.searchsorted(images, obs.image[self.rows])
-        self.X = obs.board_points[self.rows]
-        self.q = obs.pixels[self.rows]
-        self.projector = projector_for(
-            model, obs.half[self.rows], None if state is None else state[self.rows]
-        )
-        self.n = self.F + 6 * images.size
-        self.m = 2 * self.rows.size
-        # sparsity pattern: each residual pair touches the F parameters and its pose's 6
-        M = self.rows.size
-        cols = np.concatenate(
-            [
-                np.broadcast_to(np.arange(self.F), (M, self.F)),
-                self.F + 6 * self.pose_of_obs[:, None] + np.arange(6)[None, :],
-            ],
-            axis=1,
-        )
-        self._cols = np.repeat(cols, 2, axis=0).reshape(-1)
-        self._indptr = np.arange(0, 2 * M * (self.F + 6) + 1, self.F + 6)
-
-    def pack(self, model, rvecs, tvecs) -> np.ndarray:
-        poses = np.concatenate([rvecs[self.images], tvecs[self.images]], axis=1)
-        return np.concatenate([model.params[self.free], poses.reshape(-1)])
-
-    def unpack(self, x: np.ndarray):
-        p = self.template.params.copy()
-        p[self.free] = x[: self.F]
-        poses = x[self.F :].reshape(-1, 6)
-        return self.template.with_params(p), poses[:, :3], poses[:, 3:]
-
-    def points(self, rv, tv):
-        R = rotation_matrix(rv)[self.pose_of_obs]
-        return np.einsum("nij,nj->ni", R, self.X) + tv[self.pose_of_obs]
-
-    def residuals(self, x: np.ndarray) -> np.ndarray:
-        try:
-            model, rv, tv = self.unpack(x)
-        except ValueError:
-            # a trial step outside the model's valid domain (a face behind the lens, a
-            # negative focal length): a large constant cost makes the solver reject it
-            return np.full(self.m, INVALID_MODEL_RESIDUAL_PX)
-        P = self.points(rv, tv)
-        q, ok = self.projector.project(model, P)
-        r = q - self.q
-        r[~ok] = FAILED_RESIDUAL_PX
-        self._last = (x.copy(), model, rv, P)
-        return r.reshape(-1)
-
-    def jacobian_blocks(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per-observation Jacobians: parameters (M, 2, F) and own pose (M, 2, 6)."""
-        if not (hasattr(self, "_last") and np.array_equal(self._last[0], x)):
-            self.residuals(x)
-        _, model, rv, P = self._last
-        dq_dp, dq_dP = self.projector.jacobian(model, P)
-        # a corner whose derivative cannot be traced (at the edge of total internal
-        # reflection) contributes nothing to the step rather than poisoning it
-        lost = ~(np.isfinite(dq_dp).all(axis=(1, 2)) & np.isfinite(dq_dP).all(axis=(1, 2)))
-        if lost.any():
-            dq_dp, dq_dP = dq_dp.copy(), dq_dP.copy()
-            dq_dp[lost] = 0.0
-            dq_dP[lost] = 0.0
-        # d P / d(rvec, t) = [-[R X]_x J_l(rvec), I]
-        RX = P - x[self.F :].reshape(-1, 6)[self.pose_of_obs, 3:]
-        dP_drv = -skew(RX) @ rotation_jacobian(rv)[self.pose_of_obs]
-        return dq_dp, np.concatenate([dq_dP @ dP_drv, dq_dP], axis=-1)
-
-    def jacobian(self, x: np.ndarray):
-        """Sparse residual Jacobian, shape (m, n): each row pair has F + 6 entries."""
-        import scipy.sparse as sp
-
-        dq_dp, dq_dpose = self.jacobian_blocks(x)
-        blocks = np.concatenate([dq_dp, dq_dpose], axis=-1)  # (M, 2, F + 6)
-        return sp.csr_matrix((blocks.reshape(-1), self._cols, self._indptr), shape=(self.m, self.n))
-
-    def blocks(self, x: np.ndarray):
-        """Row-wise parameter and pose Jacobians for the covariance: (m, F), (m, 6), pose of row."""
-        dq_dp, dq_dpose = self.jacobian_blocks(x)
-        return (
-            dq_dp.reshape(self.m, self.F),
-            dq_dpose.reshape(self.m, 6),
-            np.repeat(self.pose_of_obs, 2),
-        )
-
-
-LSMR_OPTIONS = {"atol": 1e-12, "btol": 1e-12, "maxiter": 200}
-"""Tolerances of the inner sparse solver of each trust-region step: tight, because
-inexact steps stall the final convergence (scipy's defaults leave ~1e-6 relative)."""
-_PRECONDITION_RIDGE = 1e-10  # relative ridge keeping the start's normal matrix factorable
-
-
-def _least_squares(problem: _Problem, x0: np.ndarray, max_nfev: int):
-    """``scipy.optimize.least_squares`` (trust-region reflective, LSMR steps), whitened.
-
-    The unknowns are made unitless and decorrelated at the start: with the start's
-    normal matrix ``N0 = J0^T J0`` (small and dense: F + 6 I unknowns), column-scaled
-    by ``D = diag(N0)^-1/2`` and factored ``D N0 D = L L^T``, the solver works on
-    ``z`` with ``x = x0 + D L^-T z``. Near the start the Jacobian in ``z`` is
-    orthonormal, so each LSMR step solve takes a handful of iterations instead of
-    hundreds (the pinhole's distortion terms are correlated beyond 0.99).
-
-    MINPACK's Levenberg-Marquardt was tried and rejected: a trial step that loses a few
-    corners (a ray at the edge of total internal reflection) makes it shrink its step
-    until ``xtol`` stops it far from the minimum; the trust-region solver recovers.
-    """
-    from scipy.linalg import cholesky, solve_triangular
-    from scipy.optimize import least_squares
-    from scipy.sparse.linalg import LinearOperator
-
-    J0 = problem.jacobian(x0)
-    N0 = (J0.T @ J0).toarray()
-    diag = np.diag(N0).copy()
-    d = 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))
-    Nn = N0 * d[:, None] * d[None, :]
-    Nn[np.diag_indices_from(Nn)] += _PRECONDITION_RIDGE
-    L = cholesky(Nn, lower=True)
-    P = d[:, None] * solve_triangular(L, np.eye(L.shape[0]), lower=True, trans="T")
-
-    def fun(z):
-        return problem.residuals(x0 + P @ z)
-
-    # a unit step in z changes the linearised residuals by 1 px (RSS): let the first
-    # trust region reach the size of the residual to be removed
-    radius = max(1.0, float(np.linalg.norm(problem.residuals(x0))))
-
-    def jac(z):
-        J = problem.jacobian(x0 + P @ z)
-        return LinearOperator(
-            J.shape, matvec=lambda v: J @ (P @ v), rmatvec=lambda u: P.T @ (J.T @ u)
-        )
-
-    ls = least_squares(
-        fun,
-        np.zeros_like(x0),
-        jac=jac,
-        method="trf",
-        x_scale=radius,
-        tr_solver="lsmr",
-        tr_options=LSMR_OPTIONS,
-        ftol=1e-12,
-        xtol=1e-12,
-        gtol=1e-10,
-        max_nfev=max_nfev,
-    )
-    ls.x = x0 + P @ ls.x
-    return ls
-
-
-def refine(
-    model: CameraModel,
-    obs: Observations,
-    rvecs: np.ndarray,
-    tvecs: np.ndarray,
-    use: np.ndarray,
-    max_nfev: int,
-    state: np.ndarray | None = None,
-) -> _Fit:
-    """Jointly refine the free model parameters and the poses of the used observations.
-
-    ``state`` is a previous fit's projector state over the same observations (warm starts).
-    """
-    problem = _Problem(model, obs, use, state)
-    ls = _least_squares(problem, problem.pack(model, rvecs, tvecs), max_nfev)
-    try:
-        fitted, rv, tv = problem.unpack(ls.x)
-    except ValueError as exc:
-        raise CalibrationError(
-            f"the {model.NAME} calibration did not converge (it left the model's valid "
-            f"domain: {exc})",
-            hint="check the detections, or add images at more distances and tilts",
-        ) from None
-    rvecs, tvecs = rvecs.copy(), tvecs.copy()
-    rvecs[problem.images] = rv
-    tvecs[problem.images] = tv
-    new_state = problem.projector.state()
-    if new_state is not None:
-        full = np.full((obs.image.size, new_state.shape[1]), np.nan)
-        if state is not None:
-            full[:] = state
-        full[problem.rows] = new_state
-        new_state = full
-    return _Fit(fitted, rvecs, tvecs, int(ls.status), str(ls.message), int(ls.nfev), new_state)
-
-
-def all_residuals(model, obs: Observations, rvecs, tvecs, state=None) -> np.ndarray:
-    """Projected minus detected pixels of every observation, shape (M, 2), NaN where failed."""
-    projector = projector_for(model, obs.half, state)
-    R = rotation_matrix(rvecs)[obs.image]
-    P = np.einsum("nij,nj->ni", R, obs.board_points) + tvecs[obs.image]
-    q, ok = projector.project(model, P)
-    r = q - obs.pixels
-    r[~ok] = np.nan
-    return r
-
-
-def _fit_with_outliers(model, obs, rvecs, tvecs, options: CalibrationOptions, state=None):
-    """Refine, drop outliers by the rule in the module docstring, refit; returns the last fit."""
-    use = np.ones(obs.image.size, dtype=bool)
-    nfev = 0
-    rounds = 0
-    while True:
-        fit = refine(model, obs, rvecs, tvecs, use, options.max_nfev, state)
-        nfev += fit.nfev
-        rounds += 1
-        model, rvecs, tvecs, state = fit.model, fit.rvecs, fit.tvecs, fit.state
-        r = all_residuals(model, obs, rvecs, tvecs, state)
-        length = np.linalg.norm(r, axis=-1)
-        sigma = 1.4826 * float(np.nanmedian(np.abs(r[use])))
-        threshold = max(options.outlier_sigmas * sigma, OUTLIER_FLOOR_PX)
-        new_use = use & (length <= threshold)  # NaN (failed) counts as an outlier
-        if np.array_equal(new_use, use) or rounds > options.max_outlier_rounds:
-            return fit, r, use, threshold, nfev, rounds
-        use = new_use
-
-
 # ----- the public entry point ------------------------------------------------------------------
-
-
-def _configure(model_name: str, options: CalibrationOptions) -> frozenset[str]:
-    cls = model_class(model_name)
-    fixed = set(cls.DEFAULT_FIXED if options.fixed is None else options.fixed)
-    unknown = fixed - set(cls.PARAM_NAMES)
-    if unknown:
-        raise BadInputError(f"unknown parameter(s) to fix for {model_name}: {sorted(unknown)}")
-    if "n_glass" in cls.PARAM_NAMES and options.free_index:
-        fixed.discard("n_glass")
-    return frozenset(fixed)
 
 
 def calibrate(
@@ -792,13 +487,14 @@ def calibrate(
     split: int,
     options: CalibrationOptions | None = None,
     *,
-    start: CalibrationResult | None = None,
+    start: CalibrationResult | Sequence[CalibrationResult] | None = None,
 ) -> CalibrationResult:
     """Calibrate a camera model from board-corner detections.
 
     Parameters
     ----------
-    model_name : {'pinhole', 'raytrace'} or another registered model
+    model_name : str
+        A registered model (:data:`endomeasure.models.MODELS`).
     detections : sequence of ViewDetections
         One entry per image.
     boards : mapping of str to ndarray, shape (N_b, 3), mm
@@ -807,11 +503,11 @@ def calibrate(
     split : int
         First column of the right half.
     options : CalibrationOptions, optional
-    start : CalibrationResult, optional
-        A finished calibration of the same images to start from: of the same model (a
-        warm re-calibration, e.g. with new detections), or a ``pinhole`` calibration to
-        seed another model from (saves recomputing it when both models are calibrated).
-        Ignored when its images differ.
+    start : CalibrationResult or sequence of them, optional
+        Finished calibrations of the same images to start from: of the same model (a
+        warm re-calibration, e.g. with new detections), or of a model in this model's
+        seeding chain (saves recomputing it when several models are calibrated).
+        Calibrations of other images are ignored.
 
     Returns
     -------
@@ -823,78 +519,107 @@ def calibrate(
         Too few images or corners, degenerate geometry, no convergence, or a singular
         covariance (the message names the undetermined parameters).
     BadInputError
-        Malformed detections (ids out of range, pixels outside their half, ...).
+        Malformed detections (ids out of range, pixels outside their half, ...), or a
+        seed or option that does not fit the model.
     """
-    from endomeasure.solvers import init_calibration as init
-
     options = options or CalibrationOptions()
     cls = model_class(model_name)  # KeyError for unknown names is the caller's concern
-    fixed = _configure(model_name, options)
-    obs = _collect(detections, boards, tuple(image_size), int(split))
+    config = ModelConfig(tuple(image_size), int(split), _fixed_parameters(cls, options))
+    obs = _collect(detections, boards, config.image_size, config.split)
     _check_amount(obs)
-    _check_parallel(obs, tuple(image_size), int(split))
-
-    if start is not None and start.image_names != obs.image_names:
-        start = None  # a calibration of other images cannot seed the poses
-    if start is not None and start.model_name == cls.NAME:
+    _check_parallel(obs, config.image_size, config.split)
+    starts = [start] if isinstance(start, CalibrationResult) else list(start or ())
+    given = {r.model_name: r for r in starts if r.image_names == obs.image_names}
+    chain = _Chain(obs, config, options, given)
+    if cls.NAME in given:
         # warm start: re-calibration of the same images (e.g. with new detections)
-        model = start.model.with_config(fixed=fixed)
-        if options.glass_index is not None and "n_glass" in cls.PARAM_NAMES:
-            p = model.params.copy()
-            p[cls.index("n_glass")] = options.glass_index
-            model = model.with_params(p)
-        rvecs, tvecs = np.array(start.rvecs), np.array(start.tvecs)
-        fit, residuals, use, threshold, nfev, rounds = _fit_with_outliers(
-            model, obs, rvecs, tvecs, options
-        )
-        return _finish(fit, obs, residuals, use, threshold, nfev, rounds, "an earlier calibration")
-    if start is not None and start.model_name == "pinhole":
-        pinhole, rvecs, tvecs = start.model, np.array(start.rvecs), np.array(start.tvecs)
-        origin = "the pinhole calibration of the same images"
+        previous = given[cls.NAME]
+        model = previous.model.with_config(fixed=config.fixed).with_values(dict(options.values))
+        first = Start(model, np.array(previous.rvecs), np.array(previous.tvecs),
+                      "an earlier calibration")  # fmt: skip
     else:
-        pinhole, rvecs, tvecs = init.initial_pinhole(obs, tuple(image_size), int(split))
-        origin = "per-half OpenCV calibration"
-    _check_distances(obs, rvecs, tvecs)
-
-    state = None
-    if cls.NAME == "pinhole":
-        model = pinhole.with_config(fixed=fixed)
-        if start is None:
-            # the per-half start is rough; one joint pass before the outlier rule sees it
-            fit = refine(model, obs, rvecs, tvecs, np.ones(obs.image.size, bool), options.max_nfev)
-            model, rvecs, tvecs = fit.model, fit.rvecs, fit.tvecs
-            prefit_nfev = fit.nfev
-        else:
-            prefit_nfev = 0
-    elif cls.NAME == "raytrace":
-        if start is None:
-            fit = refine(
-                pinhole, obs, rvecs, tvecs, np.ones(obs.image.size, bool), options.max_nfev
-            )
-            pinhole, rvecs, tvecs = fit.model, fit.rvecs, fit.tvecs
-            prefit_nfev = fit.nfev
-        else:
-            prefit_nfev = 0
-        model, rvecs, tvecs, seed_nfev, state = init.seed_raytrace(
-            pinhole, obs, rvecs, tvecs, fixed, options
-        )
-        prefit_nfev += seed_nfev
-        origin = ("the seed model" if options.seed is not None else "the pinhole pair") + (
-            f", via {origin}"
-        )
-    else:
-        raise CalibrationError(
-            f"no initialisation is known for the {cls.NAME!r} model",
-            hint="calibrate with a seed of nominal values",
-        )
-
-    fit, residuals, use, threshold, nfev, rounds = _fit_with_outliers(
-        model, obs, rvecs, tvecs, options, state
+        first = chain.start_of(cls, config, _seed_model(cls, options.seed, config))
+    fitted = fit_with_outliers(
+        first.model,
+        obs,
+        first.rvecs,
+        first.tvecs,
+        max_nfev=options.max_nfev,
+        outlier_sigmas=options.outlier_sigmas,
+        max_rounds=options.max_outlier_rounds,
+        state=first.state,
     )
-    return _finish(fit, obs, residuals, use, threshold, nfev + prefit_nfev, rounds, origin)
+    return _finish(fitted, obs, chain.nfev + fitted.nfev, first.origin)
 
 
-def _finish(fit, obs, residuals, use, threshold, nfev, rounds, origin) -> CalibrationResult:
+def _fixed_parameters(cls: type[CameraModel], options: CalibrationOptions) -> frozenset[str]:
+    fixed = set(cls.DEFAULT_FIXED if options.fixed is None else options.fixed)
+    unknown = fixed - set(cls.PARAM_NAMES)
+    if unknown:
+        raise BadInputError(f"unknown parameter(s) to fix for {cls.NAME}: {sorted(unknown)}")
+    return frozenset(fixed - set(options.free))
+
+
+def _seed_model(cls: type[CameraModel], seed: Mapping[str, Any] | None, config: ModelConfig):
+    """The user's seed as a model of the kind being calibrated (BadInputError if not)."""
+    if seed is None:
+        return None
+    if seed.get("model") != cls.NAME:
+        raise BadInputError(
+            f"the seed describes a {seed.get('model')!r} model, not a {cls.NAME} model",
+            hint="give a model file of that kind (as written by `endomeasure export`)",
+        )
+    try:
+        return cls.from_dict({**seed, "config": config.to_dict()})
+    except (KeyError, TypeError, ValueError) as exc:
+        raise BadInputError(f"the seed is not a valid {cls.NAME} model: {exc}") from None
+
+
+class _Chain:
+    """Builds the start of a model from the detections or from the model it is seeded
+    from, calibrating that one first unless a finished calibration of it is given."""
+
+    def __init__(self, obs: Observations, config: ModelConfig, options: CalibrationOptions,
+                 given: Mapping[str, CalibrationResult]):  # fmt: skip
+        self.obs, self.config, self.options, self.given = obs, config, options, given
+        self.nfev = 0  # residual evaluations spent on starts
+
+    def refine(self, model, obs, rvecs, tvecs):
+        """The bundle adjustment an initialiser may call (:class:`StartContext`)."""
+        use = np.ones(obs.image.size, dtype=bool)
+        fit = refine(model, obs, rvecs, tvecs, use, self.options.max_nfev)
+        self.nfev += fit.nfev
+        return fit
+
+    def start_of(self, cls: type[CameraModel], config: ModelConfig, seed=None) -> Start:
+        base = None if cls.SEEDED_FROM is None else self.refined(model_class(cls.SEEDED_FROM))
+        ctx = StartContext(self.obs, config, dict(self.options.values), seed, self.refine)
+        start = cls.initial_calibration(ctx, base)
+        model = start.model.with_values(ctx.values)
+        if base is None:
+            # a start from the detections alone is rough: check the geometry it shows,
+            # and make one joint pass before anything else sees it
+            _check_distances(self.obs, start.rvecs, start.tvecs)
+            fit = self.refine(model, self.obs, start.rvecs, start.tvecs)
+            return Start(fit.model, fit.rvecs, fit.tvecs, start.origin, state=fit.state)
+        return start._replace(model=model, origin=f"{start.origin}, via {base.origin}")
+
+    def refined(self, cls: type[CameraModel]) -> Start:
+        """A refined calibration of ``cls`` to seed another model from."""
+        if cls.NAME in self.given:
+            done = self.given[cls.NAME]
+            _check_distances(self.obs, done.rvecs, done.tvecs)
+            origin = f"the {cls.NAME} calibration of the same images"
+            return Start(done.model, np.array(done.rvecs), np.array(done.tvecs), origin)
+        start = self.start_of(cls, self.config.with_fixed(cls.DEFAULT_FIXED))
+        if cls.SEEDED_FROM is None:
+            return start  # already refined once
+        fit = self.refine(start.model, self.obs, start.rvecs, start.tvecs)
+        return Start(fit.model, fit.rvecs, fit.tvecs, start.origin, state=fit.state)
+
+
+def _finish(fitted, obs: Observations, nfev: int, origin: str) -> CalibrationResult:
+    fit, residuals, use = fitted.fit, fitted.residuals, fitted.inliers
     model = fit.model
     name = model.NAME
     if fit.status <= 0:
@@ -915,7 +640,7 @@ def _finish(fit, obs, residuals, use, threshold, nfev, rounds, origin) -> Calibr
             f"the {name} calibration did not converge: RMS residual {rms:.1f} px",
             hint="check the detections (corner ids must match between halves) and the split",
         )
-    problem = _Problem(model, obs, use, fit.state)
+    problem = BundleProblem(model, obs, use, fit.state)
     x = problem.pack(model, fit.rvecs, fit.tvecs)
     dof = problem.m - problem.n
     if dof <= 0:
@@ -923,8 +648,7 @@ def _finish(fit, obs, residuals, use, threshold, nfev, rounds, origin) -> Calibr
             f"too few corners for the {name} model: {problem.m} residuals for {problem.n} unknowns",
             hint="add images",
         )
-    ssr = float(np.sum(inl * inl))
-    s2 = ssr / dof
+    s2 = float(np.sum(inl * inl)) / dof
     Jp, Jq, pose_rows = problem.blocks(x)
     mc = marginal_covariance(Jp, Jq, pose_rows, problem.images.size, s2)
     free_names = tuple(model.PARAM_NAMES[i] for i in problem.free)
@@ -932,7 +656,7 @@ def _finish(fit, obs, residuals, use, threshold, nfev, rounds, origin) -> Calibr
         names = ", ".join(free_names[i] for i in mc.undetermined) or "(all)"
         raise CalibrationError(
             f"the {name} calibration is singular: parameters not determined by the data: {names}",
-            hint="fix them (e.g. keep n_glass fixed) or add images with more tilt and distance",
+            hint="fix them or add images with more tilt and distance",
         )
     return CalibrationResult(
         model=model,
@@ -950,11 +674,11 @@ def _finish(fit, obs, residuals, use, threshold, nfev, rounds, origin) -> Calibr
         obs_pixels=obs.pixels,
         residuals=residuals,
         inliers=use,
-        outlier_threshold_px=float(threshold),
+        outlier_threshold_px=float(fitted.threshold_px),
         status=fit.status,
         message=fit.message,
         nfev=nfev,
-        rounds=rounds,
+        rounds=fitted.rounds,
         skipped_images=obs.skipped,
         start=origin,
     )

@@ -1,0 +1,47 @@
+"""The Brown lens camera both models share: pixels of lens coordinates and derivatives."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from endomeasure.geometry.distortion import distort, distort_coeff_jacobian, distort_jacobian
+
+__all__ = ["LENS_NAMES", "lens_pixels_and_jacobians"]
+
+LENS_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+"""The lens camera's parameters in OpenCV order (the columns of ``dq_dlens``)."""
+
+
+def lens_pixels_and_jacobians(x: np.ndarray, y: np.ndarray, lens) -> tuple[np.ndarray, ...]:
+    """Pixels of undistorted normalised lens coordinates, and their derivatives.
+
+    Parameters
+    ----------
+    x, y : ndarray, shape (N,)
+    lens : sequence of 9 floats
+        ``fx fy cx cy k1 k2 p1 p2 k3`` (:data:`LENS_NAMES`).
+
+    Returns
+    -------
+    pixels : ndarray, shape (N, 2), px
+    dq_dxy : ndarray, shape (N, 2, 2), px
+    dq_dlens : ndarray, shape (N, 2, 9), px per parameter unit
+
+    Notes
+    -----
+    ``q = (fx xd + cx, fy yd + cy)`` with ``(xd, yd) = distort(x, y)``.
+    """
+    fx, fy, cx, cy, k1, k2, p1, p2, k3 = lens
+    coeffs = (k1, k2, p1, p2, k3)
+    xd, yd = distort(x, y, coeffs)
+    pixels = np.stack([fx * xd + cx, fy * yd + cy], axis=-1)
+    j11, j12, j21, j22 = distort_jacobian(x, y, coeffs)
+    f = np.array([fx, fy])[None, :, None]
+    dq_dxy = f * np.stack([np.stack([j11, j12], -1), np.stack([j21, j22], -1)], -2)
+    dq_dlens = np.zeros(np.shape(x) + (2, 9))
+    dq_dlens[:, 0, 0] = xd
+    dq_dlens[:, 1, 1] = yd
+    dq_dlens[:, 0, 2] = 1.0
+    dq_dlens[:, 1, 3] = 1.0
+    dq_dlens[:, :, 4:9] = f * distort_coeff_jacobian(x, y)  # k1 k2 p1 p2 k3
+    return pixels, dq_dxy, dq_dlens
