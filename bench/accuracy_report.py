@@ -197,8 +197,9 @@ def detection_noise(session: Path, data: Path, zone_mm: float | None = None) -> 
 
 def truth_board_test(session: Path, data: Path, zone_mm: float) -> dict:
     """The board test on the true corner pixels: the models' own error, no image noise."""
+    from endomeasure.io.records import load_calibrated_model
     from endomeasure.io.session import open_session
-    from endomeasure.pipeline.measure import BoardSet, load_calibrated_model, run_board_test
+    from endomeasure.measure.board_runs import BoardSet, run_board_test
 
     with open_session(session) as s:
         models = {n: load_calibrated_model(s, n, session).model for n in s.model_names()}
@@ -230,9 +231,9 @@ def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int) -> di
     no prediction can remove. Returns, per (board, zone), the issue 7 figures of every
     run, and per run the zones, those within +-25 % and those with >= 90 % in the band.
     """
+    from endomeasure.measure.board_runs import BoardSet, prediction_zones, run_board_test
     from endomeasure.models import model_from_dict
-    from endomeasure.pipeline.measure import BoardSet, run_board_test
-    from endomeasure.pipeline.predict import _zone_rows, board_predictions
+    from endomeasure.pipeline.predict import board_predictions  # parses the board grids
 
     truth_model = model_from_dict(load_manifest(data)["truth_model"])
     truths = [
@@ -262,7 +263,7 @@ def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int) -> di
             if key not in preds:  # the prediction at the ideal board: the same every run
                 preds[key] = board_predictions(bt, truth_model, sigma=tuple(nz["sigma_uv"]))
             p = preds[key]
-            zones = _zone_rows(
+            zones = prediction_zones(
                 bt, p["bias"], p["std"], p["std_image"], p["std_calibration"], zone_mm
             )
             rows += [

@@ -385,8 +385,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     report = Report("bench/accuracy_scene.py", args, ACCURACY, argv=argv)
     per_image = QUICK_PLANTED_PER_IMAGE if args.quick else PLANTED_PER_IMAGE
+    from endomeasure.io.records import load_calibrated_model
     from endomeasure.io.session import open_session
-    from endomeasure.pipeline.measure import MatchRefusedError, load_calibrated_model
+    from endomeasure.pipeline.measure import MatchRefusedError
 
     tmp = tempfile.TemporaryDirectory()
     work = args.work or Path(tmp.name)
