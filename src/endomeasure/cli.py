@@ -191,6 +191,104 @@ def main() -> None:
         sys.exit(EXIT_BUG)
 
 
+# --------------------------------------------------------------------------- values
+
+
+def _bad_input(what: str, hint: str | None = None) -> EndomeasureError:
+    from endomeasure.errors import BadInputError
+
+    return BadInputError(what, hint=hint)
+
+
+def parse_pixel(text: str) -> tuple[float, float]:
+    """``"U,V"`` -> ``(u, v)`` in px; anything else is a :class:`BadInputError`."""
+    import math
+
+    parts = str(text).replace(" ", "").split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        u, v = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise _bad_input(
+            f"cannot read the pixel {text!r}", hint="give pixels as U,V, e.g. --left 120.5,88"
+        ) from None
+    if not (math.isfinite(u) and math.isfinite(v)):
+        raise _bad_input(f"the pixel {text!r} is not finite")
+    return u, v
+
+
+def parse_sigma(text: str | None) -> float | tuple[float, float] | None:
+    """``"PX"`` (every coordinate) or ``"U,V"`` (u and v separately) -> the image noise in
+    px; ``None`` stays ``None``; anything else is a :class:`BadInputError`."""
+    if text is None:
+        return None
+    parts = str(text).replace(" ", "").split(",")
+    try:
+        if len(parts) not in (1, 2):
+            raise ValueError
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise _bad_input(
+            f"cannot read the image noise {text!r}",
+            hint="give --sigma PX for every coordinate or --sigma U,V, e.g. --sigma 0.013,0.016",
+        ) from None
+    from endomeasure.solvers.uncertainty import checked_sigma
+
+    return checked_sigma(values[0] if len(values) == 1 else values)
+
+
+def parse_depths(text: str) -> list[float]:
+    """``"start:stop:step"`` (stop included) or ``"z1,z2,..."`` -> depths, mm."""
+    import numpy as np
+
+    s = str(text).strip()
+    try:
+        if ":" in s:
+            a, b, c = (float(x) for x in s.split(":"))
+            if not (c > 0 and b >= a):
+                raise ValueError
+            depths = np.arange(a, b + 0.5 * c, c)
+        else:
+            depths = np.array([float(x) for x in s.split(",")])
+    except ValueError:
+        raise _bad_input(
+            f"cannot read the depths {text!r}",
+            hint="give START:STOP:STEP in mm (e.g. 10:45:5) or a list 12,20,30",
+        ) from None
+    if depths.size == 0 or not np.all(np.isfinite(depths) & (depths > 0)):
+        raise _bad_input(f"depths must be positive numbers of mm, got {text!r}")
+    return depths.tolist()
+
+
+def parse_grid(text: str) -> tuple[int, int]:
+    """``"NU,NV"`` -> ``(n_u, n_v)``."""
+    try:
+        n_u, n_v = (int(x) for x in text.split(","))
+    except ValueError:
+        raise _bad_input(f"cannot read the grid {text!r}", hint="give NU,NV, e.g. 24,18") from None
+    return n_u, n_v
+
+
+def parse_split(text: str) -> int | None:
+    """``"auto"`` -> None, or a column number."""
+    value = str(text).strip().lower()
+    if value == "auto":
+        return None
+    try:
+        return int(value)
+    except ValueError:
+        raise _bad_input(
+            f"--split must be 'auto' or a column number, not {text!r}",
+            hint="e.g. --split auto or --split 640",
+        ) from None
+
+
+def parse_sets(text: str) -> list[str]:
+    """``'calib,test'`` -> ``['calib', 'test']`` (validated by the simulate pipeline)."""
+    return [s.strip().lower() for s in str(text).split(",") if s.strip()]
+
+
 # --------------------------------------------------------------------------- commands
 
 
@@ -314,9 +412,10 @@ def detect(
     """
     from endomeasure.pipeline.detect import detect_images
 
+    split_column = parse_split(split)
     if json_output:
         report = detect_images(
-            session, images, board, image_set=image_set, split=split, workers=workers
+            session, images, board, image_set=image_set, split=split_column, workers=workers
         )
         _print_json(report.to_dict())
         raise typer.Exit(report.exit_code)
@@ -339,7 +438,7 @@ def detect(
             images,
             board,
             image_set=image_set,
-            split=split,
+            split=split_column,
             workers=workers,
             on_progress=on_progress,
         )
@@ -403,7 +502,7 @@ def simulate(
         report = run(
             out_dir,
             preset,
-            sets,
+            parse_sets(sets),
             seed=seed,
             noise_free=noise_free,
             on_progress=(
@@ -605,12 +704,7 @@ def measure(
         return
 
     from endomeasure.errors import BadInputError
-    from endomeasure.pipeline.measure import (
-        MatchRefusedError,
-        measure_points,
-        parse_pixel,
-        parse_sigma,
-    )
+    from endomeasure.pipeline.measure import MatchRefusedError, measure_points
 
     if image is None:
         raise BadInputError("a measurement needs --image NAME", hint="or use --board-test")
@@ -713,21 +807,23 @@ def _render_measurement(console: Console, r: Any) -> None:
             f"{p.rms_px:.3f}",
         )
     console.print(table)
+    e = r.error
     console.print(
-        f"[bold]{r.kind} = {r.value:.4f} {r.unit}[/bold]  +- {r.std:.4f} {r.unit} (1 sigma), "
-        f"+- {r.ci95:.4f} {r.unit} (95%), predicted bias {r.bias:+.4f} {r.unit}"
+        f"[bold]{r.kind} = {e.value:.4f} {r.unit}[/bold]  +- {e.std:.4f} {r.unit} (1 sigma), "
+        f"+- {e.ci95:.4f} {r.unit} (95%), predicted bias {e.bias:+.4f} {r.unit}"
     )
     console.print(
-        f"uncertainty: image noise {r.std_image:.4f}, calibration {r.std_calibration:.4f} "
-        f"{r.unit} (sigma {_sigma_text(r.sigma_px)} from {r.sigma_source}; {r.method.upper()})"
+        f"uncertainty: image noise {e.std_image:.4f}, calibration {e.std_calibration:.4f} "
+        f"{r.unit} (sigma {_sigma_text(r.noise.sigma)} from {r.noise.source}; "
+        f"{r.method.upper()})"
     )
     if r.warning:
         console.print(
             f"[bold red]WARNING: not accurate enough: the predicted 95% error is "
-            f"{r.relative_percent:.1f}% of the value (threshold {r.warn_percent:g}%)[/bold red]"
+            f"{e.relative_percent:.1f}% of the value (threshold {r.warn_percent:g}%)[/bold red]"
         )
     else:
-        console.print(f"accuracy index {r.relative_percent:.2f}% (threshold {r.warn_percent:g}%)")
+        console.print(f"accuracy index {e.relative_percent:.2f}% (threshold {r.warn_percent:g}%)")
     if r.record:
         console.print(f"stored as measurement {r.record} in {r.session}")
 
@@ -844,7 +940,6 @@ def predict_error(
     if session is None and not (map_mode and model_file is not None):
         raise BadInputError("a session is needed (only --map --model-file works without one)")
     console = _stderr_console()
-    from endomeasure.pipeline.measure import parse_sigma
     from endomeasure.pipeline.predict import NoiseAssumptions
 
     noise = NoiseAssumptions(
@@ -861,8 +956,8 @@ def predict_error(
         report = predict_board_test(session, model, noise, zone_mm=zone_mm, plot=plot)
         if json_output:
             _print_json(report.to_dict())
-            return
-        _render_board_prediction(console, report)
+        else:
+            _render_board_prediction(console, report)
         return
     if measurement is not None:
         from endomeasure.pipeline.predict import predict_stored_measurement
@@ -870,39 +965,47 @@ def predict_error(
         r = predict_stored_measurement(session, measurement, noise)
         if json_output:
             _print_json(r.to_dict())
-            return
-        console.print(
-            f"[bold]{r.measurement}: {r.kind} = {r.value:.4f} {r.unit}[/bold] ({r.model}); "
-            f"predicted bias {r.bias:+.4f}, std {r.std:.4f} {r.unit} (image {r.std_image:.4f}, "
-            f"calibration {r.std_calibration:.4f}), 95% +-{r.ci95:.4f} = "
-            f"{r.relative_percent:.2f}% of the value; {r.method.upper()}, "
-            f"sigma {_sigma_text(r.sigma_px)} ({r.sigma_source}), rho images {r.rho_images:g}, "
-            f"rho points {r.rho_points:g}"
-        )
+        else:
+            _render_stored_prediction(console, r)
         return
     from endomeasure.pipeline.predict import predict_map
 
-    try:
-        n_u, n_v = (int(x) for x in grid.split(","))
-    except ValueError:
-        raise BadInputError(
-            f"cannot read the grid {grid!r}", hint="give NU,NV, e.g. 24,18"
-        ) from None
     r = predict_map(
         session,
         model=model,
         model_file=model_file,
         template=template,
         size_mm=size_mm,
-        depths=depths,
-        grid=(n_u, n_v),
+        depths=parse_depths(depths),
+        grid=parse_grid(grid),
         noise=noise,
         plot=plot,
         csv=csv,
     )
     if json_output:
         _print_json(r.to_dict())
-        return
+    else:
+        _render_map(console, r)
+
+
+def _noise_text(noise: Any) -> str:
+    return (
+        f"sigma {_sigma_text(noise.sigma)} ({noise.source}), rho images {noise.rho_images:g}, "
+        f"rho points {noise.rho_points:g}"
+    )
+
+
+def _render_stored_prediction(console: Console, r: Any) -> None:
+    e = r.error
+    console.print(
+        f"[bold]{r.measurement}: {r.kind} = {e.value:.4f} {r.unit}[/bold] ({r.model}); "
+        f"predicted bias {e.bias:+.4f}, std {e.std:.4f} {r.unit} (image {e.std_image:.4f}, "
+        f"calibration {e.std_calibration:.4f}), 95% +-{e.ci95:.4f} = "
+        f"{e.relative_percent:.2f}% of the value; {r.method.upper()}, {_noise_text(r.noise)}"
+    )
+
+
+def _render_map(console: Console, r: Any) -> None:
     from rich.table import Table
 
     unit = "mm^2" if r.template == "area" else "mm"
@@ -928,8 +1031,7 @@ def predict_error(
         )
     console.print(table)
     console.print(
-        f"sigma {_sigma_text(r.sigma_px)} ({r.sigma_source}), rho images {r.rho_images:g}, "
-        f"rho points {r.rho_points:g}, calibration covariance "
+        f"{_noise_text(r.noise)}, calibration covariance "
         f"{'in' if r.calibration else 'not'} included; {r.method.upper()}"
     )
     for label, path in (("plot", r.plot), ("data", r.csv)):
@@ -942,8 +1044,8 @@ def _render_board_prediction(console: Console, r: Any) -> None:
 
     table = Table(
         title=f"predicted vs actual board-test errors ({r.model}, {r.method.upper()}, sigma "
-        f"{_sigma_text(r.sigma_px)} from {r.sigma_source}, rho images {r.rho_images:g}, rho points "
-        f"{r.rho_points:g})",
+        f"{_sigma_text(r.noise.sigma)} from {r.noise.source}, rho images "
+        f"{r.noise.rho_images:g}, rho points {r.noise.rho_points:g})",
         title_justify="left",
     )
     for column in (

@@ -160,7 +160,8 @@ def random_measurement(model, rng, kind, sigma=DETECTION_NOISE_PX):
     run (not by linear propagation, which misses the depth-noise term that dominates
     short segments far away, and not by the UT under test).
     """
-    from endomeasure.pipeline.measure import DEFAULT_WARN_PERCENT, Z95
+    from endomeasure.measure.predict import Z95
+    from endomeasure.pipeline.measure import DEFAULT_WARN_PERCENT
 
     while True:
         pair = surface_measurement(model, rng, kind)

@@ -20,7 +20,7 @@ from endomeasure.conventions import Half
 from endomeasure.io.export import read_opencv_yaml
 from endomeasure.io.session import Detection, edit_session, open_session
 from endomeasure.models import model_from_dict
-from endomeasure.pipeline.calibrate import model_from_record
+from endomeasure.io.records import model_from_record
 
 runner = CliRunner()
 NOISE_PX = 0.1

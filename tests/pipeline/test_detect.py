@@ -95,7 +95,7 @@ def test_bad_files_are_reported_per_image_and_the_rest_stored(image_dir, tmp_pat
         folder / "missing.png",
         folder / "other.png",
     ]
-    report = detect_images(session, paths, CHESS, split=str(SPLIT))
+    report = detect_images(session, paths, CHESS, split=SPLIT)
     assert report.exit_code == 1
     by_path = {r.path.rsplit("/", 1)[-1]: r for r in report.images}
     assert by_path["broken.png"].error == "cannot decode the image file"

@@ -101,8 +101,8 @@ def test_image_noise_part_scales_with_sigma(exact_session):
     ql, qr = _pixels(np.array(pts))
     a = measure_points(session, "raytrace", "scene", ql, qr, "length", sigma=0.01, store=False)
     b = measure_points(session, "raytrace", "scene", ql, qr, "length", sigma=0.02, store=False)
-    assert b.std_image == pytest.approx(2.0 * a.std_image, rel=0.01)
-    assert a.std_calibration == pytest.approx(b.std_calibration, rel=1e-6)
+    assert b.error.std_image == pytest.approx(2.0 * a.error.std_image, rel=0.01)
+    assert a.error.std_calibration == pytest.approx(b.error.std_calibration, rel=1e-6)
 
 
 def test_measurements_are_stored_and_numbered(tmp_path):

@@ -163,14 +163,14 @@ def test_matched_points_uncertainty_is_the_match_precision(scene_session):
             step[i, axis] = FD_STEP_PX
             slope = (length(qr + step) - length(qr - step)) / (2 * FD_STEP_PX)
             variance += (slope * point.match.precision_px) ** 2
-    assert report.std_image == pytest.approx(np.sqrt(variance), rel=LINEAR_REL_TOL)
+    assert report.error.std_image == pytest.approx(np.sqrt(variance), rel=LINEAR_REL_TOL)
     assert report.value == pytest.approx(length(qr), abs=1e-9)
 
     given = measure_points(
         scene_session, "raytrace", SCENE, left, None, "length", sigma=0.1, store=False
     )
-    assert given.sigma_source == "given" and given.sigma_px == 0.1
-    assert given.std_image > report.std_image  # 0.1 px on all four pixels vs ~0.03 on two
+    assert given.noise.source == "given" and given.noise.sigma == 0.1
+    assert given.error.std_image > report.error.std_image  # 0.1 px on all four pixels vs ~0.03 on two
 
 
 def test_a_refused_point_stops_the_measurement(scene_session, tmp_path):

@@ -45,6 +45,7 @@ __all__ = [
     "board_stencils",
     "board_test_table",
     "stencil_pixels",
+    "zone_groups",
     "zone_summary",
 ]
 
@@ -294,7 +295,7 @@ def stencil_pixels(
     -------
     pixels_left, pixels_right : ndarray, shape (M, n, 2), px
         In measurement order, for the M rows of that kind (in table order), ready for
-        :func:`endomeasure.solvers.uncertainty.predict_measurement_error` with kind
+        :func:`endomeasure.measure.predict.predict_measurement_error` with kind
         ``BOARD_KINDS[kind]``.
     """
     rows = np.flatnonzero(table.kind == kind)
@@ -348,6 +349,21 @@ class ZoneSummary(NamedTuple):
         ]
 
 
+def zone_groups(table: BoardTestTable, zone_mm: float, valid: np.ndarray):
+    """The rows of each (kind, distance zone) of a table, in summary order.
+
+    Zones are ``[k w, (k+1) w)`` of the rows' mean z for integers k (aligned to multiples
+    of the width ``w = zone_mm``, so zones agree between models and runs). Yields
+    ``(kind, k, rows)`` with ``rows`` a boolean mask within ``valid``, kinds as in
+    :data:`BOARD_KINDS`, zones ascending.
+    """
+    zone = np.floor(table.z_mean / zone_mm)
+    for kind in BOARD_KINDS:
+        sel = valid & (table.kind == kind)
+        for k in np.unique(zone[sel]):
+            yield kind, k, sel & (zone == k)
+
+
 def zone_summary(tables: Mapping[str, BoardTestTable], zone_mm: float = 5.0) -> ZoneSummary:
     """Group board-test errors by distance zone, kind and model.
 
@@ -355,8 +371,7 @@ def zone_summary(tables: Mapping[str, BoardTestTable], zone_mm: float = 5.0) -> 
     ----------
     tables : mapping of model name -> BoardTestTable
     zone_mm : float, mm
-        Zone width along z. Zones are ``[k w, (k+1) w)`` for integers k (aligned to
-        multiples of the width, so zones agree between models and runs).
+        Zone width along z (:func:`zone_groups`).
 
     Returns
     -------
@@ -368,19 +383,16 @@ def zone_summary(tables: Mapping[str, BoardTestTable], zone_mm: float = 5.0) -> 
     cols: dict[str, list] = {k: [] for k in ZoneSummary._fields}
     for model, table in tables.items():
         valid = np.isfinite(table.error) & np.isfinite(table.z_mean)
-        zone = np.floor(table.z_mean / zone_mm)
-        for kind in BOARD_KINDS:
-            sel = valid & (table.kind == kind)
-            for k in np.unique(zone[sel]):
-                e = table.error[sel & (zone == k)]
-                cols["model"].append(model)
-                cols["kind"].append(kind)
-                cols["zone_start"].append(k * zone_mm)
-                cols["zone_end"].append((k + 1) * zone_mm)
-                cols["n"].append(e.size)
-                cols["mean_error"].append(float(np.mean(e)))
-                cols["std_error"].append(float(np.std(e, ddof=1)) if e.size > 1 else np.nan)
-                cols["true"].append(float(table.true[sel & (zone == k)][0]))
+        for kind, k, rows in zone_groups(table, zone_mm, valid):
+            e = table.error[rows]
+            cols["model"].append(model)
+            cols["kind"].append(kind)
+            cols["zone_start"].append(k * zone_mm)
+            cols["zone_end"].append((k + 1) * zone_mm)
+            cols["n"].append(e.size)
+            cols["mean_error"].append(float(np.mean(e)))
+            cols["std_error"].append(float(np.std(e, ddof=1)) if e.size > 1 else np.nan)
+            cols["true"].append(float(table.true[rows][0]))
     return ZoneSummary(
         np.array(cols["model"], dtype=str),
         np.array(cols["kind"], dtype=str),

@@ -17,7 +17,9 @@ solvers, not the other way round.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+import dataclasses
+import math
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -27,6 +29,7 @@ from endomeasure.measure.kinds import evaluate, kind_spec
 from endomeasure.solvers.uncertainty import (
     MeasurementFunction,
     Propagation,
+    checked_sigma,
     input_covariance,
     propagate,
 )
@@ -36,13 +39,127 @@ if TYPE_CHECKING:
 
 __all__ = [
     "TEMPLATES",
+    "Z95",
     "ErrorMap",
+    "ImageNoise",
+    "PredictedError",
+    "accuracy_index",
+    "image_noise",
     "error_map",
     "measurement_function",
     "predict_measurement_error",
     "template_points",
     "volume_grid",
 ]
+
+
+Z95 = 1.959963984540054
+"""Two-sided 95 % quantile of the standard normal distribution."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ImageNoise:
+    """The image noise a prediction assumes: its size, where it comes from, correlations.
+
+    Attributes
+    ----------
+    sigma : float or (float, float), px
+        Standard deviation of every pixel coordinate, or of u and v.
+    source : str
+        Where ``sigma`` comes from (``given``, ``calibration residuals``, ...).
+    rho_images, rho_points : float
+        Correlation of one point's errors in the two halves, and of different points'
+        (:func:`~endomeasure.solvers.uncertainty.pixel_covariance`).
+    """
+
+    sigma: float | tuple[float, float]
+    source: str = "given"
+    rho_images: float = 0.0
+    rho_points: float = 0.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "sigma", checked_sigma(self.sigma))
+        for name, rho in (("rho-images", self.rho_images), ("rho-points", self.rho_points)):
+            if not (math.isfinite(rho) and -1.0 <= rho <= 1.0):
+                raise BadInputError(f"--{name} must lie in [-1, 1], not {rho}")
+
+    def to_dict(self, correlations: bool = True) -> dict[str, Any]:
+        """The report fields ``sigma_px``, ``sigma_source`` (and ``rho_images``,
+        ``rho_points``)."""
+        out: dict[str, Any] = {"sigma_px": self.sigma, "sigma_source": self.source}
+        if correlations:
+            out.update(rho_images=float(self.rho_images), rho_points=float(self.rho_points))
+        return out
+
+
+def image_noise(
+    given, residual_sigma: float | None, what: str, *, rho_images=0.0, rho_points=0.0
+) -> ImageNoise:
+    """The image noise of a prediction: ``given`` (one number, or u and v, px), or else a
+    calibration's residual sigma (px); ``what`` names the model in the error when it has
+    none."""
+    if given is not None:
+        return ImageNoise(given, "given", rho_images, rho_points)
+    if residual_sigma is None:
+        raise BadInputError(
+            f"{what} carries no calibration residuals to estimate the image noise",
+            hint="give --sigma PX (or U,V)",
+        )
+    return ImageNoise(residual_sigma, "calibration residuals", rho_images, rho_points)
+
+
+def accuracy_index(value: float, bias: float, std: float) -> float:
+    """The predicted 95 % error bound relative to the value, ``(|bias| + Z95 std) / |value|``,
+    percent; infinite for a zero value."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return float(100.0 * (abs(bias) + Z95 * std) / abs(value)) if value != 0 else math.inf
+
+
+@dataclasses.dataclass(frozen=True)
+class PredictedError:
+    """One measurement's value with its predicted bias and standard deviation, and the
+    standard deviation's budget by source (image noise, calibration), in the kind's unit."""
+
+    value: float
+    bias: float
+    std: float
+    std_image: float
+    std_calibration: float
+
+    @property
+    def ci95(self) -> float:
+        """Half-width of the 95 % interval, ``Z95 std``."""
+        return Z95 * self.std
+
+    @property
+    def relative_percent(self) -> float:
+        """The accuracy index (:func:`accuracy_index`), percent."""
+        return accuracy_index(self.value, self.bias, self.std)
+
+    @classmethod
+    def of(cls, pred: Propagation, index: int = 0, image_only: bool = False) -> PredictedError:
+        """Measurement ``index`` of a propagation; ``image_only``: no calibration part was
+        propagated, so all of the std is image noise."""
+        std = float(pred.std[index])
+        parts = {k: float(v[1][index]) for k, v in pred.parts.items()}
+        return cls(
+            float(pred.value[index]),
+            float(pred.bias[index]),
+            std,
+            parts.get("image", std if image_only else math.nan),
+            parts.get("calibration", math.nan),
+        )
+
+    def to_dict(self) -> dict[str, float]:
+        return {
+            "value": self.value,
+            "bias": self.bias,
+            "std": self.std,
+            "std_image": self.std_image,
+            "std_calibration": self.std_calibration,
+            "ci95": self.ci95,
+            "relative_percent": self.relative_percent,
+        }
 
 
 def measurement_function(
@@ -66,7 +183,8 @@ def predict_measurement_error(
     pixels_left: np.ndarray,
     pixels_right: np.ndarray,
     *,
-    sigma: float | None = None,
+    noise: ImageNoise | None = None,
+    sigma: float | tuple[float, float] | None = None,
     rho_images: float = 0.0,
     rho_points: float = 0.0,
     pixel_std: np.ndarray | None = None,
@@ -83,8 +201,9 @@ def predict_measurement_error(
         Measurement kind.
     pixels_left, pixels_right : ndarray, shape (n, 2) or (M, n, 2), px
         The measurements' points in each half.
-    sigma, rho_images, rho_points
-        Image noise (see :func:`pixel_covariance`).
+    noise : ImageNoise, optional
+        The image noise; or give its parts ``sigma``, ``rho_images``, ``rho_points``
+        (see :func:`~endomeasure.solvers.uncertainty.pixel_covariance`).
     pixel_std : ndarray, shape (n, 2), px, optional
         Per-point standard deviations instead of ``sigma`` (see :func:`input_covariance`).
     param_cov : ndarray, shape (F, F), optional
@@ -102,6 +221,8 @@ def predict_measurement_error(
     Propagation
         Shape (M,), or (1,) for a single measurement.
     """
+    if noise is not None:
+        sigma, rho_images, rho_points = noise.sigma, noise.rho_images, noise.rho_points
     ql = np.asarray(pixels_left, dtype=np.float64)
     if ql.ndim == 2:
         ql = ql[None]
@@ -210,7 +331,8 @@ def error_map(
     template: str = "x-segment",
     size_mm: float = 1.0,
     *,
-    sigma: float,
+    noise: ImageNoise | None = None,
+    sigma: float | tuple[float, float] | None = None,
     rho_images: float = 0.0,
     rho_points: float = 0.0,
     param_cov: np.ndarray | None = None,
@@ -229,7 +351,7 @@ def error_map(
         One of :data:`TEMPLATES`.
     size_mm : float
         Template size (segment length, square side).
-    sigma, rho_images, rho_points, param_cov, method, **options
+    noise (or sigma, rho_images, rho_points), param_cov, method, **options
         As in :func:`predict_measurement_error`.
 
     Returns
@@ -251,7 +373,7 @@ def error_map(
     std_cal = np.full(K, np.nan)
     if visible.any():
         res = predict_measurement_error(
-            model, kind, pl.pixels[visible], pr.pixels[visible], sigma=sigma,
+            model, kind, pl.pixels[visible], pr.pixels[visible], noise=noise, sigma=sigma,
             rho_images=rho_images, rho_points=rho_points, param_cov=param_cov,
             method=method, **options,
         )  # fmt: skip

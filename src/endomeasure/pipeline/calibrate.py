@@ -2,27 +2,22 @@
 
 Steps: read the session (image size, split, boards, the detections of the calibration
 images); calibrate each requested model (:func:`endomeasure.solvers.calibrate.calibrate`;
-``raytrace`` is seeded from the ``pinhole`` result when both are asked for); store every
+with ``all``, every registered model, each seed model before the models seeded from it,
+which start from its result); store every
 model that succeeded in one atomic session edit; draw residual plots if asked; report.
 A model whose calibration is refused is not stored, and the report carries the refusal
 (the command then exits 1).
 
-Stored per model (group ``models/<name>``; ``docs/session-format.md``): the parameters
-with names and configuration, and arrays ``free_names``, ``covariance``,
-``correlation``, ``std``, ``rvecs``/``tvecs`` (board poses ``T_model_board``),
-``image_names``/``image_boards``, the observations ``obs_image``, ``obs_half``,
-``obs_ids``, ``obs_board_points``, ``obs_pixels``, ``residuals``, ``inliers``, and
-``rms_image``, ``rms_image_half``, ``rms_half``; attributes ``rms``,
-``residual_variance``, ``status``, ``message``, ``nfev``, ``rounds``, ``n_outliers``,
-``outlier_threshold_px``, ``start``. Together these are everything the uncertainty of a
-later measurement needs (the covariance) and everything needed to recompute it.
+What is stored per model (group ``models/<name>``) is defined in
+:func:`endomeasure.io.records.calibration_record` and ``docs/session-format.md``: the
+parameters, the covariance a later measurement's uncertainty needs, and everything
+needed to recompute it.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -32,19 +27,18 @@ from endomeasure.conventions import Half
 from endomeasure.errors import BadInputError, CalibrationError
 
 __all__ = [
+    "ALL_MODELS",
     "CalibrateReport",
     "ModelSummary",
     "calibrate_session",
+    "calibration_order",
     "load_calibration_inputs",
-    "result_to_record",
-    "model_from_record",
     "export_session_model",
     "plot_residuals",
-    "MODEL_CHOICES",
 ]
 
-MODEL_CHOICES = ("pinhole", "raytrace", "all")
-_ORDER = ("pinhole", "raytrace")
+ALL_MODELS = "all"
+"""The ``--model`` value that asks for every registered model."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -160,90 +154,6 @@ def load_calibration_inputs(session: str | Path):
     return views, boards, meta.image_size, meta.split
 
 
-# ----- storing --------------------------------------------------------------------------------
-
-
-def result_to_record(result, name: str | None = None):
-    """A session :class:`~endomeasure.io.session.ModelRecord` holding a calibration result."""
-    from endomeasure.io.session import ModelRecord
-
-    model = result.model
-    arrays = {
-        "free_names": np.array(result.free_names, dtype=object),
-        "covariance": result.covariance,
-        "correlation": result.correlation,
-        "std": result.std,
-        "rvecs": result.rvecs,
-        "tvecs": result.tvecs,
-        "image_names": np.array(result.image_names, dtype=object),
-        "image_boards": np.array(result.image_boards, dtype=object),
-        "obs_image": result.obs_image.astype(np.int32),
-        "obs_half": result.obs_half.astype(np.int8),
-        "obs_ids": result.obs_ids.astype(np.int32),
-        "obs_board_points": result.obs_board_points,
-        "obs_pixels": result.obs_pixels,
-        "residuals": result.residuals,
-        "inliers": result.inliers.astype(np.uint8),
-        "rms_image": result.rms_image,
-        "rms_image_half": result.rms_image_half,
-        "rms_half": result.rms_half,
-    }
-    attrs = {
-        "kind": "calibration",
-        "rms": result.rms,
-        "residual_variance": result.residual_variance,
-        "status": result.status,
-        "message": result.message,
-        "nfev": result.nfev,
-        "rounds": result.rounds,
-        "n_outliers": result.outlier_count,
-        "outlier_threshold_px": result.outlier_threshold_px,
-        "start": result.start,
-        "skipped_images": list(result.skipped_images),
-    }
-    units = {
-        "rms": "px",
-        "residual_variance": "px^2",
-        "outlier_threshold_px": "px",
-        "rvecs": "rad",
-        "tvecs": "mm",
-        "obs_board_points": "mm",
-        "obs_pixels": "px",
-        "residuals": "px",
-        "rms_image": "px",
-        "rms_image_half": "px",
-        "rms_half": "px",
-        "covariance": "parameter units squared (see free_names)",
-    }
-    return ModelRecord(
-        name=name or model.NAME,
-        registry_name=model.NAME,
-        params=np.array(model.params),
-        param_names=tuple(model.PARAM_NAMES),
-        config=model.config.to_dict(),
-        arrays=arrays,
-        attrs=attrs,
-        units=units,
-    )
-
-
-def model_from_record(record):
-    """The camera model of a stored :class:`~endomeasure.io.session.ModelRecord`."""
-    from endomeasure.models import model_from_dict
-
-    try:
-        return model_from_dict(
-            {
-                "model": record.registry_name,
-                "param_names": list(record.param_names),
-                "params": np.asarray(record.params).tolist(),
-                "config": record.config,
-            }
-        )
-    except (KeyError, ValueError) as exc:
-        raise BadInputError(f"stored model {record.name!r} cannot be read: {exc}") from None
-
-
 # ----- plots ------------------------------------------------------------------------------------
 
 
@@ -339,9 +249,45 @@ def _read_seed(path: str | Path | None):
         raise BadInputError(f"cannot read the seed model ({exc})", path=str(path)) from None
 
 
+def calibration_order(model: str) -> list[str]:
+    """The registered models ``model`` asks for (one, or all for :data:`ALL_MODELS`), in
+    registry order with each model's seed model (``SEEDED_FROM``, when a model class
+    names one) moved before it."""
+    from endomeasure.models import MODELS
+
+    if model != ALL_MODELS:
+        if model not in MODELS:
+            choices = ", ".join((*MODELS, ALL_MODELS))
+            raise BadInputError(f"unknown model {model!r}; choose one of {choices}")
+        return [model]
+    order: list[str] = []
+
+    def visit(name: str, seen: tuple[str, ...] = ()) -> None:
+        seed = getattr(MODELS[name], "SEEDED_FROM", None)
+        if seed in MODELS and seed not in seen and seed not in order:
+            visit(seed, (*seen, name))
+        if name not in order:
+            order.append(name)
+
+    for name in MODELS:
+        visit(name)
+    return order
+
+
+def _start_for(name: str, results: dict[str, Any]):
+    """The earlier result a model's calibration starts from: its seed model's when the
+    model class names one (``SEEDED_FROM``), else the latest; the solver uses what fits."""
+    from endomeasure.models import MODELS
+
+    seed = getattr(MODELS[name], "SEEDED_FROM", None)
+    if seed is not None:
+        return results.get(seed)
+    return next(reversed(results.values()), None)
+
+
 def calibrate_session(
     session: str | Path,
-    model: str = "all",
+    model: str = ALL_MODELS,
     glass_index: float | None = None,
     free_index: bool = False,
     seed: str | Path | None = None,
@@ -352,13 +298,14 @@ def calibrate_session(
     Parameters
     ----------
     session : path
-    model : {'pinhole', 'raytrace', 'all'}
+    model : str
+        A registered model name or ``'all'`` (:func:`calibration_order`).
     glass_index : float, optional
-        Prism glass index for ``raytrace`` (default N-BK7, 1.5168).
+        Prism glass index for models with a prism (default N-BK7, 1.5168).
     free_index : bool
         Estimate the glass index too.
     seed : path, optional
-        JSON file of a ``raytrace`` model with nominal design values.
+        JSON file of a model with nominal design values to start from.
     plot_dir : path, optional
         Where to write residual plots (PNG).
 
@@ -367,33 +314,32 @@ def calibrate_session(
     CalibrateReport
         ``refused`` names the models whose calibration was refused (not stored).
     """
+    from endomeasure.io.records import calibration_record
     from endomeasure.io.session import edit_session
     from endomeasure.solvers.calibrate import CalibrationOptions, calibrate
 
-    if model not in MODEL_CHOICES:
-        raise BadInputError(f"unknown model {model!r}; choose one of {', '.join(MODEL_CHOICES)}")
+    names = calibration_order(model)
     if glass_index is not None and not glass_index > 1.0:
         raise BadInputError(f"the glass index must exceed 1, not {glass_index}")
-    names: Sequence[str] = _ORDER if model == "all" else (model,)
     options = CalibrationOptions(
-        glass_index=glass_index, free_index=free_index, seed=_read_seed(seed)
+        values={} if glass_index is None else {"n_glass": glass_index},
+        free=frozenset({"n_glass"}) if free_index else frozenset(),
+        seed=_read_seed(seed),
     )
     views, boards, image_size, split = load_calibration_inputs(session)
-    results, refused = {}, {}
-    pinhole = None
+    results: dict[str, Any] = {}
+    refused: dict[str, str] = {}
     for name in names:
+        start = _start_for(name, results)
         try:
-            res = calibrate(name, views, boards, image_size, split, options, start=pinhole)
+            results[name] = calibrate(name, views, boards, image_size, split, options,
+                                      start=start)  # fmt: skip
         except CalibrationError as exc:
             refused[name] = exc.one_line()
-            continue
-        results[name] = res
-        if name == "pinhole":
-            pinhole = res
     if results:
         with edit_session(session) as writer:
             for name, res in results.items():
-                writer.write_model(result_to_record(res, name))
+                writer.write_model(calibration_record(res, name))
     summaries = {}
     for name, res in results.items():
         plots = plot_residuals(res, Path(plot_dir)) if plot_dir is not None else []
@@ -405,21 +351,9 @@ def calibrate_session(
 def export_session_model(session: str | Path, name: str, fmt: str, out: str | Path) -> Path:
     """``endomeasure export``: write a stored model (and its calibration figures) to a file."""
     from endomeasure.io.export import export_model
+    from endomeasure.io.records import calibration_extras, model_from_record
     from endomeasure.io.session import open_session
 
     with open_session(session) as s:
         record = s.model(name)
-    model = model_from_record(record)
-    extras = None
-    if "covariance" in record.arrays and "free_names" in record.arrays:
-        names = [str(n) for n in record.arrays["free_names"]]
-        cov = np.asarray(record.arrays["covariance"], dtype=np.float64)
-        extras = {
-            "free_names": names,
-            "std": np.sqrt(np.diag(cov)).tolist(),
-            "covariance": cov.tolist(),
-            "rms_px": float(record.attrs.get("rms", float("nan"))),
-            "rms_half_px": np.asarray(record.arrays.get("rms_half", [])).tolist(),
-            "residual_variance_px2": float(record.attrs.get("residual_variance", float("nan"))),
-        }
-    return export_model(model, fmt, out, extras)
+    return export_model(model_from_record(record), fmt, out, calibration_extras(record))

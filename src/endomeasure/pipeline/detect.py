@@ -19,7 +19,7 @@ import dataclasses
 import os
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -264,21 +264,6 @@ def _expand(paths: Iterable[str | os.PathLike]) -> tuple[list[str], list[ImageRe
     return files, failures
 
 
-def _parse_split(split: str | int) -> int | None:
-    if isinstance(split, int):
-        return split
-    text = str(split).strip().lower()
-    if text == "auto":
-        return None
-    try:
-        return int(text)
-    except ValueError:
-        raise BadInputError(
-            f"--split must be 'auto' or a column number, not {split!r}",
-            hint="e.g. --split auto or --split 640",
-        ) from None
-
-
 def _check_reads(reads, stored_size, stored_images, results):
     """Keep decoded images of the session's size that do not clash with stored ones.
 
@@ -331,92 +316,32 @@ def _choose_split(given_split, stored_split, estimates, records):
     return None, "auto"
 
 
-def detect_images(
-    session_path: str | os.PathLike,
-    paths: Iterable[str | os.PathLike],
-    board: str,
-    *,
-    image_set: str = "calib",
-    split: str | int = "auto",
-    workers: int = 1,
-    method: str | None = None,
-    on_progress: Callable[[str, int, int], None] | None = None,
-) -> DetectReport:
-    """Detect a board in both halves of image files and store everything in a session.
+class _Snapshot(NamedTuple):
+    """What the session held before the command (nothing for a new session)."""
 
-    Parameters
-    ----------
-    session_path : path-like
-        Created when missing.
-    paths : iterable of path-like
-        Image files and/or directories of images.
-    board : str
-        Board spec (``chessboard:COLSxROWS:SQUARE_MM`` or ``charuco:...``).
-    image_set : str
-        ``calib``, ``test`` or ``scene``.
-    split : 'auto' or int
-        ``auto`` keeps the session's split, or finds one (median over the images);
-        a column overrides when the session has none or the same one.
-    workers : int
-        Processes for reading and detection.
-    method : str, optional
-        Chessboard method; the measured best by default.
-    on_progress : callable(stage, done, total), optional
-        ``stage`` is ``"reading"`` or ``"detecting"``.
+    split: int | None
+    image_size: tuple[int, int] | None
+    images: dict[str, str]  # name -> sha256
+    has_detections: bool
 
-    Returns
-    -------
-    DetectReport
-        Per-image results; :attr:`DetectReport.exit_code` says how the command should end.
 
-    Raises
-    ------
-    BadInputError
-        Malformed board spec, image set, split or worker count; a split that
-        contradicts the one stored with existing detections; no split could be found.
-    SessionError
-        The session cannot be read.
-    """
-    from endomeasure.features.boards import parse_board_spec
-    from endomeasure.io.session import IMAGE_SETS, edit_session, open_session
+def _snapshot(session_path: Path) -> _Snapshot:
+    from endomeasure.io.session import open_session
 
-    spec = parse_board_spec(board)
-    board_name = spec.canonical()
-    if image_set not in IMAGE_SETS:
-        raise BadInputError(
-            f"unknown image set {image_set!r}", hint=f"use one of {', '.join(IMAGE_SETS)}"
-        )
-    if int(workers) < 1:
-        raise BadInputError(f"--workers must be at least 1, not {workers}")
-    given_split = _parse_split(split)
-    session_path = Path(session_path)
+    if not session_path.exists():
+        return _Snapshot(None, None, {}, False)
+    with open_session(session_path) as session:
+        meta = session.metadata()
+        images = {info.name: info.sha256 for info in session.images_info()}
+        return _Snapshot(meta.split, meta.image_size, images, bool(session.detections()))
 
-    stored_split, stored_size, stored_images, has_detections = None, None, {}, False
-    if session_path.exists():
-        with open_session(session_path) as session:
-            meta = session.metadata()
-            stored_split, stored_size = meta.split, meta.image_size
-            stored_images = {info.name: info.sha256 for info in session.images_info()}
-            has_detections = bool(session.detections())
-    if (
-        given_split is not None
-        and stored_split is not None
-        and given_split != stored_split
-        and has_detections
-    ):
-        raise BadInputError(
-            f"--split {given_split} differs from the session's split {stored_split}, which its "
-            "detections were made with",
-            path=str(session_path),
-            hint="use --split auto to keep the session's split, or start a new session",
-        )
 
-    files, results = _expand(paths)
+def _progress_ticks(on_progress):
+    """``tick(stage, total)`` -> a callback counting one item of that stage done."""
     progress = on_progress or (lambda stage, done, total: None)
-    counter = {"done": 0}
 
     def tick(stage: str, total: int) -> Callable[[], None]:
-        counter["done"] = 0
+        counter = {"done": 0}
 
         def done() -> None:
             counter["done"] += 1
@@ -424,20 +349,35 @@ def detect_images(
 
         return done
 
-    want_split = given_split is None and stored_split is None
-    known_split = given_split if given_split is not None else stored_split
-    with _Runner(int(workers)) as runner:
+    return tick
+
+
+class _Detected(NamedTuple):
+    records: list  # ImageRecord of every usable image
+    detections: dict  # image name -> SplitDetection
+    split: int | None
+    split_source: str
+    size: tuple[int, int] | None
+
+
+def _read_and_detect(files, image_set, board_name, given_split, before: _Snapshot, method,
+                     workers: int, tick, results) -> _Detected:  # fmt: skip
+    """Read every file, fix the split, detect in both halves; failed files go to
+    ``results``."""
+    want_split = given_split is None and before.split is None
+    known_split = given_split if given_split is not None else before.split
+    with _Runner(workers) as runner:
         # With the split known, each worker reads and detects in one go.
         reads = runner.run(
             _read_task,
             [(path, image_set, want_split, board_name, known_split, method) for path in files],
             tick("reading" if want_split else "detecting", len(files)),
         )
-        records, detections = _check_reads(reads, stored_size, stored_images, results)
+        records, detections = _check_reads(reads, before.image_size, before.images, results)
         split_used, split_source = _choose_split(
-            given_split, stored_split, [r[2] for r in reads if r[1] is not None], records
+            given_split, before.split, [r[2] for r in reads if r[1] is not None], records
         )
-        size = stored_size or (
+        size = before.image_size or (
             (int(records[0].pixels.shape[1]), int(records[0].pixels.shape[0])) if records else None
         )
         if split_used is not None and size is not None and not 0 < split_used < size[0]:
@@ -452,47 +392,26 @@ def detect_images(
             tick("detecting", len(missing)),
         )
         detections.update(dict(found))
+    return _Detected(records, detections, split_used, split_source, size)
 
-    by_name = detections
-    for record in records:
-        detection = by_name[record.name]
-        halves = {
-            h.half.label: HalfSummary(len(h.ids), h.quality.edge_width_px, h.failure or "")
-            for h in detection.halves
-        }
-        status = {2: STATUS_OK, 1: STATUS_ONE_HALF, 0: STATUS_FAILED}[detection.n_ok]
-        error = "" if detection.n_ok else "no board found in either half"
-        results.append(
-            ImageResult(
-                path=record.original_path,
-                name=record.name,
-                status=status,
-                error=error,
-                halves=halves,
-            )
-        )
-    order = {path: index for index, path in enumerate(files)}
-    results.sort(key=lambda r: order.get(r.path, -1))
 
-    report = DetectReport(
-        session=str(session_path),
-        board=board_name,
-        board_name=board_name,
-        image_set=image_set,
-        split=split_used,
-        split_source=split_source,
-        images=results,
-        stored=False,
-    )
-    if report.exit_code == 2:
-        return report
+def _image_result(record, detection) -> ImageResult:
+    halves = {
+        h.half.label: HalfSummary(len(h.ids), h.quality.edge_width_px, h.failure or "")
+        for h in detection.halves
+    }
+    status = {2: STATUS_OK, 1: STATUS_ONE_HALF, 0: STATUS_FAILED}[detection.n_ok]
+    error = "" if detection.n_ok else "no board found in either half"
+    return ImageResult(path=record.original_path, name=record.name, status=status,
+                       error=error, halves=halves)  # fmt: skip
 
+
+def _stored_detections(found: _Detected, board_name: str, method: str | None) -> list:
     from endomeasure.io.session import Detection
 
     stored = []
-    for record in records:
-        detection = by_name[record.name]
-        for half in detection.halves:
+    for record in found.records:
+        for half in found.detections[record.name].halves:
             stored.append(
                 Detection(
                     image=record.name,
@@ -506,12 +425,20 @@ def detect_images(
                         "quality_kind": QUALITY_KIND,
                         "brightness": half.quality.brightness,
                         "contrast": half.quality.contrast,
-                        "split": int(split_used),
+                        "split": int(found.split),
                         "method": method or "default",
                     },
                 )
             )
+    return stored
+
+
+def _store(session_path: Path, spec, board_name: str, found: _Detected, method) -> None:
+    from endomeasure.io.session import edit_session
+
+    stored = _stored_detections(found, board_name, method)
     attrs, units = board_attrs(spec)
+    split_used, size = found.split, found.size
     with edit_session(session_path, create=True) as writer:
         meta = writer.metadata()
         # Another command may have set these since the snapshot; a conflict is refused.
@@ -531,9 +458,98 @@ def detect_images(
                 path=str(session_path),
                 hint="run detect again",
             )
-        extra = {} if meta.split is not None else {"split_method": split_source}
+        extra = {} if meta.split is not None else {"split_method": found.split_source}
         writer.set_metadata(image_size=size, split=split_used, **extra)
-        writer.write_images(records)
+        writer.write_images(found.records)
         writer.write_board(board_name, board_name, attrs, units)
         writer.write_detections(stored)
+
+
+def detect_images(
+    session_path: str | os.PathLike,
+    paths: Iterable[str | os.PathLike],
+    board: str,
+    *,
+    image_set: str = "calib",
+    split: int | None = None,
+    workers: int = 1,
+    method: str | None = None,
+    on_progress: Callable[[str, int, int], None] | None = None,
+) -> DetectReport:
+    """Detect a board in both halves of image files and store everything in a session.
+
+    Parameters
+    ----------
+    session_path : path-like
+        Created when missing.
+    paths : iterable of path-like
+        Image files and/or directories of images.
+    board : str
+        Board spec (``chessboard:COLSxROWS:SQUARE_MM`` or ``charuco:...``).
+    image_set : str
+        ``calib``, ``test`` or ``scene``.
+    split : int or None, px
+        None keeps the session's split, or finds one (median over the images); a column
+        overrides when the session has none or the same one.
+    workers : int
+        Processes for reading and detection.
+    method : str, optional
+        Chessboard method; the detector's default when None.
+    on_progress : callable(stage, done, total), optional
+        ``stage`` is ``"reading"`` or ``"detecting"``.
+
+    Returns
+    -------
+    DetectReport
+        Per-image results; :attr:`DetectReport.exit_code` says how the command should end.
+
+    Raises
+    ------
+    BadInputError
+        Malformed board spec, image set or worker count; a split that contradicts the
+        one stored with existing detections; no split could be found.
+    SessionError
+        The session cannot be read.
+    """
+    from endomeasure.features.boards import parse_board_spec
+    from endomeasure.io.session import IMAGE_SETS
+
+    spec = parse_board_spec(board)
+    board_name = spec.canonical()
+    if image_set not in IMAGE_SETS:
+        raise BadInputError(
+            f"unknown image set {image_set!r}", hint=f"use one of {', '.join(IMAGE_SETS)}"
+        )
+    if int(workers) < 1:
+        raise BadInputError(f"--workers must be at least 1, not {workers}")
+    session_path = Path(session_path)
+    before = _snapshot(session_path)
+    if split is not None and before.split is not None and split != before.split:
+        if before.has_detections:
+            raise BadInputError(
+                f"--split {split} differs from the session's split {before.split}, which its "
+                "detections were made with",
+                path=str(session_path),
+                hint="use --split auto to keep the session's split, or start a new session",
+            )
+
+    files, results = _expand(paths)
+    found = _read_and_detect(files, image_set, board_name, split, before, method, int(workers),
+                             _progress_ticks(on_progress), results)  # fmt: skip
+    results.extend(_image_result(r, found.detections[r.name]) for r in found.records)
+    order = {path: index for index, path in enumerate(files)}
+    results.sort(key=lambda r: order.get(r.path, -1))
+    report = DetectReport(
+        session=str(session_path),
+        board=board_name,
+        board_name=board_name,
+        image_set=image_set,
+        split=found.split,
+        split_source=found.split_source,
+        images=results,
+        stored=False,
+    )
+    if report.exit_code == 2:
+        return report
+    _store(session_path, spec, board_name, found, method)
     return dataclasses.replace(report, stored=True)

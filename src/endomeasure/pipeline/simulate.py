@@ -26,7 +26,7 @@ from endomeasure import __version__
 from endomeasure.errors import BadInputError
 from endomeasure.simulate.manifest import MANIFEST_NAME
 
-__all__ = ["SimulationReport", "simulate", "parse_sets", "MANIFEST_NAME", "MANIFEST_FORMAT"]
+__all__ = ["SimulationReport", "simulate", "checked_sets", "MANIFEST_NAME", "MANIFEST_FORMAT"]
 
 MANIFEST_FORMAT = "endomeasure-simulation"
 MANIFEST_VERSION = 1
@@ -64,12 +64,11 @@ class SimulationReport:
         return asdict(self)
 
 
-def parse_sets(text: str | Iterable[str]) -> list[str]:
-    """``'calib,test'`` -> ``['calib', 'test']``, validated, in canonical order."""
+def checked_sets(names: Iterable[str]) -> list[str]:
+    """Image set names, validated, in canonical order."""
     from endomeasure.simulate.scenes import SET_NAMES
 
-    items = text.split(",") if isinstance(text, str) else list(text)
-    names = [s.strip().lower() for s in items if s.strip()]
+    names = list(names)
     unknown = sorted(set(names) - set(SET_NAMES))
     if unknown or not names:
         raise BadInputError(
@@ -77,6 +76,13 @@ def parse_sets(text: str | Iterable[str]) -> list[str]:
             hint=f"use a comma-separated list of {', '.join(SET_NAMES)}",
         )
     return [s for s in SET_NAMES if s in names]
+
+
+def parse_sets(text: str | Iterable[str]) -> list[str]:
+    """Kept for callers of its earlier place: the CLI reads ``--set`` with
+    :func:`endomeasure.cli.parse_sets`; a comma-separated string here is split the same way."""
+    items = text.split(",") if isinstance(text, str) else list(text)
+    return checked_sets(s.strip().lower() for s in items if s.strip())
 
 
 def _noise_rng(seed: int, set_name: str, index: int):
@@ -95,7 +101,7 @@ def _remove_stale(folder: Path, set_name: str) -> None:
 def simulate(
     out_dir: str | os.PathLike,
     preset: str | os.PathLike = "default",
-    sets: str | Iterable[str] = "calib,test,scene",
+    sets: Iterable[str] = ("calib", "test", "scene"),
     seed: int = 0,
     noise_free: bool = False,
     on_progress: Callable[[int, int, str], None] | None = None,
@@ -108,9 +114,9 @@ def simulate(
         Created if missing; earlier renders of the same sets in it are replaced.
     preset : str or path-like
         A built-in preset name or a preset JSON file.
-    sets : str or iterable of str
+    sets : iterable of str
         Any of ``calib``, ``test``, ``scene``, ``charuco`` (the ChArUco set is not
-        rendered by default).
+        rendered by default). A comma-separated string is accepted for earlier callers.
     seed : int
         Non-negative; the same seed gives the same images, byte for byte.
     noise_free : bool
@@ -137,7 +143,7 @@ def simulate(
     start = time.perf_counter()
     if int(seed) < 0:
         raise BadInputError(f"seed must be a non-negative integer, not {seed}")
-    set_names = parse_sets(sets)
+    set_names = parse_sets(sets) if isinstance(sets, str) else checked_sets(sets)
     loaded = load_preset(preset)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():

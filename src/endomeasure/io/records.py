@@ -1,0 +1,455 @@
+"""The content of what the commands store: codecs between results and session records.
+
+``docs/session-format.md`` specifies the file; :mod:`endomeasure.io.session` reads and
+writes its groups. This module defines what ``calibrate`` stores in ``models/<name>``
+(section 3.5) and the record kinds ``measurement``, ``board_test`` and ``prediction``
+(section 3.6), in one place. The codecs take results by their attributes and return
+plain values (arrays, dicts, camera models), so ``io`` needs no part above ``models``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import re
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from endomeasure.errors import BadInputError
+from endomeasure.io.session import ModelRecord, Record
+
+__all__ = [
+    "BOARD_TEST_RECORD",
+    "MEASUREMENT_RECORD",
+    "PREDICTION_RECORD",
+    "CalibratedModel",
+    "StoredMeasurement",
+    "board_prediction_record",
+    "board_test_fields",
+    "board_test_record",
+    "calibration_extras",
+    "calibration_record",
+    "load_calibrated_model",
+    "measurement_prediction_record",
+    "measurement_record",
+    "model_from_record",
+    "next_measurement_name",
+    "stored_measurement",
+]
+
+MEASUREMENT_RECORD = "measurement"
+BOARD_TEST_RECORD = "board_test"
+PREDICTION_RECORD = "prediction"
+_MEASUREMENT_NAME = re.compile(r"^m(\d+)$")
+
+
+# ----- models written by `calibrate` ------------------------------------------------------------
+
+
+def calibration_record(result, name: str | None = None) -> ModelRecord:
+    """The ``models/<name>`` entry of a calibration result (``CalibrationResult``)."""
+    model = result.model
+    arrays = {
+        "free_names": np.array(result.free_names, dtype=object),
+        "covariance": result.covariance,
+        "correlation": result.correlation,
+        "std": result.std,
+        "rvecs": result.rvecs,
+        "tvecs": result.tvecs,
+        "image_names": np.array(result.image_names, dtype=object),
+        "image_boards": np.array(result.image_boards, dtype=object),
+        "obs_image": result.obs_image.astype(np.int32),
+        "obs_half": result.obs_half.astype(np.int8),
+        "obs_ids": result.obs_ids.astype(np.int32),
+        "obs_board_points": result.obs_board_points,
+        "obs_pixels": result.obs_pixels,
+        "residuals": result.residuals,
+        "inliers": result.inliers.astype(np.uint8),
+        "rms_image": result.rms_image,
+        "rms_image_half": result.rms_image_half,
+        "rms_half": result.rms_half,
+    }
+    attrs = {
+        "kind": "calibration",
+        "rms": result.rms,
+        "residual_variance": result.residual_variance,
+        "status": result.status,
+        "message": result.message,
+        "nfev": result.nfev,
+        "rounds": result.rounds,
+        "n_outliers": result.outlier_count,
+        "outlier_threshold_px": result.outlier_threshold_px,
+        "start": result.start,
+        "skipped_images": list(result.skipped_images),
+    }
+    units = {
+        "rms": "px",
+        "residual_variance": "px^2",
+        "outlier_threshold_px": "px",
+        "rvecs": "rad",
+        "tvecs": "mm",
+        "obs_board_points": "mm",
+        "obs_pixels": "px",
+        "residuals": "px",
+        "rms_image": "px",
+        "rms_image_half": "px",
+        "rms_half": "px",
+        "covariance": "parameter units squared (see free_names)",
+    }
+    return ModelRecord(
+        name=name or model.NAME,
+        registry_name=model.NAME,
+        params=np.array(model.params),
+        param_names=tuple(model.PARAM_NAMES),
+        config=model.config.to_dict(),
+        arrays=arrays,
+        attrs=attrs,
+        units=units,
+    )
+
+
+def model_from_record(record: ModelRecord):
+    """The camera model of a stored model entry (registry name, parameters, config)."""
+    from endomeasure.models import model_from_dict
+
+    try:
+        return model_from_dict(
+            {
+                "model": record.registry_name,
+                "param_names": list(record.param_names),
+                "params": np.asarray(record.params).tolist(),
+                "config": record.config,
+            }
+        )
+    except (KeyError, ValueError) as exc:
+        raise BadInputError(f"stored model {record.name!r} cannot be read: {exc}") from None
+
+
+def _stored_covariance(record: ModelRecord) -> tuple[list[str], np.ndarray] | None:
+    if "covariance" not in record.arrays or "free_names" not in record.arrays:
+        return None
+    names = [str(n) for n in record.arrays["free_names"]]
+    return names, np.asarray(record.arrays["covariance"], dtype=np.float64)
+
+
+def calibration_extras(record: ModelRecord) -> dict[str, Any] | None:
+    """The calibration figures an exported model file carries (None without a covariance)."""
+    stored = _stored_covariance(record)
+    if stored is None:
+        return None
+    names, cov = stored
+    return {
+        "free_names": names,
+        "std": np.sqrt(np.diag(cov)).tolist(),
+        "covariance": cov.tolist(),
+        "rms_px": float(record.attrs.get("rms", float("nan"))),
+        "rms_half_px": np.asarray(record.arrays.get("rms_half", [])).tolist(),
+        "residual_variance_px2": float(record.attrs.get("residual_variance", float("nan"))),
+    }
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibratedModel:
+    """A model stored by ``calibrate`` with what the uncertainty of a measurement needs.
+
+    Attributes
+    ----------
+    name : str
+    model : CameraModel
+    param_cov : ndarray, shape (F, F) or None
+        Covariance of the free parameters, in the model's ``free_mask`` order.
+    sigma_px : float or None
+        Image noise estimated from the calibration residuals (``sqrt(SSR / dof)`` per
+        coordinate), px.
+    """
+
+    name: str
+    model: Any
+    param_cov: np.ndarray | None
+    sigma_px: float | None
+
+
+def load_calibrated_model(reader, name: str, session: str | Path) -> CalibratedModel:
+    """The model ``name`` of an open session, with its covariance and residual sigma.
+
+    A model the session does not hold is a :class:`BadInputError` naming those it holds.
+    """
+    names = reader.model_names()
+    if name not in names:
+        held = ", ".join(names) if names else "none"
+        raise BadInputError(
+            f"the session has no calibrated {name!r} model (it holds: {held})",
+            path=str(session),
+            hint=f"run `endomeasure calibrate {session} --model {name}` first",
+        )
+    record = reader.model(name)
+    model = model_from_record(record)
+    cov = None
+    stored = _stored_covariance(record)
+    if stored is not None:
+        stored_names, c = stored
+        free = [model.PARAM_NAMES[i] for i in np.flatnonzero(model.free_mask)]
+        if sorted(stored_names) != sorted(free) or c.shape != (len(free), len(free)):
+            raise BadInputError(
+                f"the stored covariance of model {name!r} does not match its free parameters",
+                path=str(session),
+                hint=f"re-run `endomeasure calibrate {session} --model {name}`",
+            )
+        order = [stored_names.index(n) for n in free]
+        cov = c[np.ix_(order, order)]
+    variance = record.attrs.get("residual_variance")
+    sigma = (
+        float(np.sqrt(variance))
+        if variance is not None and np.isfinite(variance) and variance > 0
+        else None
+    )
+    return CalibratedModel(name, model, cov, sigma)
+
+
+# ----- measurement records ----------------------------------------------------------------------
+
+
+def next_measurement_name(names: Sequence[str]) -> str:
+    """The next free measurement id: ``m001``, ``m002``, ..."""
+    numbers = [int(m.group(1)) for n in names if (m := _MEASUREMENT_NAME.match(n))]
+    return f"m{max(numbers, default=0) + 1:03d}"
+
+
+def _match_arrays(matches, pixel_std) -> dict[str, np.ndarray]:
+    """What a measurement keeps of an automatic search (nothing without one)."""
+    if matches is None:
+        return {}
+    out = {
+        "match_query_half": np.array([m.half.label for m in matches], dtype=object),
+        "match_score": np.array([m.score for m in matches]),
+        "match_precision": np.array([m.precision_px for m in matches]),
+    }
+    if pixel_std is not None:
+        out["pixel_std"] = pixel_std
+    return out
+
+
+def measurement_record(name: str, report, pixel_std: np.ndarray | None = None) -> Record:
+    """The ``measurement`` record of a ``measure`` report (its points and predicted error).
+
+    ``pixel_std`` (n, 2), px: the per-point input noise of a matched measurement.
+    """
+    points = report.points
+    matches = [p.match for p in points] if any(p.match is not None for p in points) else None
+    e, unit = report.error, report.unit
+    return Record(
+        MEASUREMENT_RECORD,
+        name,
+        attrs={
+            "model": report.model,
+            "image": report.image,
+            "measurement_kind": report.kind,
+            "value": e.value,
+            "bias": e.bias,
+            "std": e.std,
+            "std_image": e.std_image,
+            "std_calibration": e.std_calibration,
+            "ci95": e.ci95,
+            "relative_percent": e.relative_percent,
+            "warn_percent": float(report.warn_percent),
+            "warning": report.warning,
+            "sigma_px": report.noise.sigma,
+            "sigma_source": report.noise.source,
+            "method": report.method,
+            "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        },
+        arrays={
+            "pixels_left": np.array([p.left for p in points], dtype=np.float64),
+            "pixels_right": np.array([p.right for p in points], dtype=np.float64),
+            "points": np.array([p.xyz for p in points], dtype=np.float64),
+            "ray_gap": np.array([p.gap_mm for p in points], dtype=np.float64),
+            "reprojection_rms": np.array([p.rms_px for p in points], dtype=np.float64),
+            **_match_arrays(matches, pixel_std),
+        },
+        units={
+            **dict.fromkeys(("value", "bias", "std", "std_image", "std_calibration", "ci95"), unit),
+            "relative_percent": "%",
+            "warn_percent": "%",
+            "sigma_px": "px",
+            "pixels_left": "px",
+            "pixels_right": "px",
+            "points": "mm",
+            "ray_gap": "mm",
+            "reprojection_rms": "px",
+            **({} if matches is None else {"pixel_std": "px"}),
+        },
+    )
+
+
+class StoredMeasurement(NamedTuple):
+    """What a prediction needs of a stored measurement."""
+
+    model: str
+    kind: str
+    pixels_left: np.ndarray  # (n, 2) px
+    pixels_right: np.ndarray  # (n, 2) px
+
+
+def stored_measurement(record: Record) -> StoredMeasurement:
+    """The model, kind and pixels of a ``measurement`` record."""
+    return StoredMeasurement(
+        str(record.attrs["model"]),
+        str(record.attrs["measurement_kind"]),
+        record.arrays["pixels_left"],
+        record.arrays["pixels_right"],
+    )
+
+
+# ----- board-test records -----------------------------------------------------------------------
+
+_BOARD_TEST_UNITS = {
+    "zone_mm": "mm",
+    "image_square_mm": "mm",
+    "corner_left": "px",
+    "corner_right": "px",
+    "corner_xyz": "mm",
+    "corner_gap": "mm",
+    "corner_rms": "px",
+    "row_true": "mm or mm^2 (area)",
+    "row_measured": "mm or mm^2 (area)",
+    "row_error": "mm or mm^2 (area)",
+    "row_z_mean": "mm",
+    "row_pixel_mean": "px",
+    "zone_start": "mm",
+    "zone_end": "mm",
+    "zone_mean_error": "mm or mm^2 (area)",
+    "zone_std_error": "mm or mm^2 (area)",
+    "zone_true": "mm or mm^2 (area)",
+}
+
+
+def board_test_record(bt, zone_mm: float) -> Record:
+    """The ``board_test`` record of one model's board test (a ``ModelBoardTest``)."""
+    t, s = bt.table, bt.summary
+    return Record(
+        BOARD_TEST_RECORD,
+        bt.model,
+        attrs={"model": bt.model, "zone_mm": float(zone_mm), "n_images": len(bt.images)},
+        arrays={
+            "images": np.array(bt.images, dtype=object),
+            "image_board": np.array(bt.board, dtype=object),
+            "image_square_mm": np.array(bt.square_mm),
+            "corner_image": bt.corner_image.astype(np.int32),
+            "corner_id": bt.corner_id.astype(np.int32),
+            "corner_left": bt.corner_left,
+            "corner_right": bt.corner_right,
+            "corner_xyz": bt.corner_xyz,
+            "corner_gap": bt.corner_gap,
+            "corner_rms": bt.corner_rms,
+            "corner_status": bt.corner_status,
+            "row_image": t.image.astype(np.int32),
+            "row_kind": np.array(t.kind, dtype=object),
+            "row_corners": t.corners.astype(np.int32),
+            "row_true": t.true,
+            "row_measured": t.measured,
+            "row_error": t.error,
+            "row_z_mean": t.z_mean,
+            "row_pixel_mean": t.pixel_mean,
+            "zone_board": np.array(bt.summary_board, dtype=object),
+            "zone_kind": np.array(s.kind, dtype=object),
+            "zone_start": s.zone_start,
+            "zone_end": s.zone_end,
+            "zone_n": s.n,
+            "zone_mean_error": s.mean_error,
+            "zone_std_error": s.std_error,
+            "zone_true": s.true,
+        },
+        units=dict(_BOARD_TEST_UNITS),
+    )
+
+
+def board_test_fields(record: Record) -> dict[str, Any]:
+    """A ``board_test`` record as plain values: the fields of ``ModelBoardTest``, with
+    ``table`` and ``summary`` as dicts of the ``BoardTestTable`` / ``ZoneSummary`` columns."""
+    a, model = record.arrays, record.name
+    kind = np.asarray(a["zone_kind"]).astype(str)
+    return {
+        "model": model,
+        "board": [str(b) for b in a["image_board"]],
+        "images": [str(i) for i in a["images"]],
+        "square_mm": [float(s) for s in a["image_square_mm"]],
+        "corner_image": a["corner_image"].astype(np.int64),
+        "corner_id": a["corner_id"].astype(np.int64),
+        "corner_left": a["corner_left"],
+        "corner_right": a["corner_right"],
+        "corner_xyz": a["corner_xyz"],
+        "corner_gap": a["corner_gap"],
+        "corner_rms": a["corner_rms"],
+        "corner_status": a["corner_status"].astype(np.uint8),
+        "table": {
+            "image": a["row_image"].astype(np.int64),
+            "kind": np.asarray(a["row_kind"]).astype(str),
+            "corners": a["row_corners"].astype(np.int64),
+            "true": a["row_true"],
+            "measured": a["row_measured"],
+            "error": a["row_error"],
+            "z_mean": a["row_z_mean"],
+            "pixel_mean": a["row_pixel_mean"],
+        },
+        "summary": {
+            "model": np.full(kind.shape[0], model).astype(str),
+            "kind": kind,
+            "zone_start": a["zone_start"],
+            "zone_end": a["zone_end"],
+            "n": a["zone_n"].astype(np.int64),
+            "mean_error": a["zone_mean_error"],
+            "std_error": a["zone_std_error"],
+            "true": a["zone_true"],
+        },
+        "summary_board": np.asarray(a["zone_board"]).astype(str),
+    }
+
+
+# ----- prediction records -----------------------------------------------------------------------
+
+
+def _noise_attrs(noise) -> dict[str, Any]:
+    return {
+        "sigma_px": noise.sigma,
+        "sigma_source": noise.source,
+        "rho_images": float(noise.rho_images),
+        "rho_points": float(noise.rho_points),
+    }
+
+
+def board_prediction_record(report) -> Record:
+    """The ``prediction`` record ``board-test-<model>`` of a ``BoardPredictionReport``."""
+    return Record(
+        PREDICTION_RECORD,
+        f"board-test-{report.model}",
+        attrs={
+            "mode": "board-test",
+            "model": report.model,
+            "method": report.method,
+            **_noise_attrs(report.noise),
+            "calibration": bool(report.calibration),
+            "zone_mm": report.zone_mm,
+            "within_band": report.within_band,
+            "zones": json.dumps(report.zones),
+        },
+        arrays=dict(report.rows),
+        units={"sigma_px": "px", "zone_mm": "mm"},
+    )
+
+
+def measurement_prediction_record(report: Any, fields: Mapping[str, Any]) -> Record:
+    """The ``prediction`` record ``<id>-<method>`` of a ``MeasurementPredictionReport``;
+    ``fields``: the report as a flat dict (its JSON document)."""
+    return Record(
+        PREDICTION_RECORD,
+        f"{report.measurement}-{report.method}",
+        attrs={
+            "mode": "measurement",
+            **{("measurement_kind" if k == "kind" else k): v for k, v in fields.items()},
+        },
+        units={"sigma_px": "px", "relative_percent": "%"},
+    )

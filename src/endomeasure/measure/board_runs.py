@@ -1,0 +1,363 @@
+"""One model's board test over the test images of several boards, and its prediction.
+
+:mod:`endomeasure.measure.board_test` measures one board's images from triangulated
+corners. This module does the rest of the paper's Sections 3 and 4 for a camera model:
+gather the test images of every known board (:func:`board_sets`), triangulate their
+corners and assemble one table and a per-board zone summary (:func:`run_board_test`),
+predict every measurement's bias and std (:func:`board_predictions`) and compare the
+predictions with the actual errors per board, kind and zone (:func:`prediction_zones`).
+
+How a zone's prediction is compared with the actual errors
+-----------------------------------------------------------
+Each measurement i of a zone has its own predicted bias ``b_i`` and std ``s_i`` (they
+vary over the field). The actual errors of the zone are draws from the mixture of these
+distributions, whose mean is ``mean(b_i)`` and whose standard deviation is
+``sqrt(mean(s_i^2) + var(b_i))``: that is the predicted zone std compared with the
+sample std of the actual errors. The band check asks for each error whether
+``|e_i - b_i| <= BAND_SIGMAS s_i``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable, Mapping
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from endomeasure.conventions import Half
+from endomeasure.errors import BadInputError
+from endomeasure.measure.board_test import (
+    BOARD_KINDS,
+    BoardImage,
+    BoardTestTable,
+    ZoneSummary,
+    board_test_table,
+    stencil_pixels,
+    zone_groups,
+    zone_summary,
+)
+
+__all__ = [
+    "BAND_SIGMAS",
+    "BoardSet",
+    "ModelBoardTest",
+    "RigidFit",
+    "board_predictions",
+    "board_sets",
+    "ideal_board_pixels",
+    "prediction_zones",
+    "rigid_fit",
+    "run_board_test",
+    "within_band",
+]
+
+BAND_SIGMAS = 2.0
+"""Half-width of the band an actual error is checked against, in predicted std."""
+
+_TEST_HINT = "run `endomeasure detect SESSION IMAGES --board SPEC --set test` first"
+
+
+@dataclasses.dataclass(frozen=True)
+class BoardSet:
+    """The test images of one board: geometry and the detected corners in both halves."""
+
+    board: str
+    cols: int
+    rows: int
+    square_mm: float
+    images: list[str]
+    ids: list[np.ndarray]  # per image (N_i,) int
+    left: list[np.ndarray]  # per image (N_i, 2) px
+    right: list[np.ndarray]  # per image (N_i, 2) px
+
+
+def board_sets(
+    boards: Mapping[str, Mapping[str, Any]],
+    detections: Iterable,
+    test_images: Iterable[str],
+    where: str | None = None,
+) -> list[BoardSet]:
+    """Every test image with a known board detected in both halves (their common ids).
+
+    Parameters
+    ----------
+    boards : mapping of board name to its attributes (``cols``, ``rows``, ``square_mm``)
+        Boards without these are skipped.
+    detections : iterable of Detection
+        The session's detections (``image``, ``board``, ``half``, ``ids``, ``pixels``).
+    test_images : iterable of str
+    where : str, optional
+        The session path, for the errors.
+    """
+    test_images = set(test_images)
+    if not test_images:
+        raise BadInputError("the session holds no test images", path=where, hint=_TEST_HINT)
+    by_board: dict[str, dict[str, dict[Half, Any]]] = {}
+    for det in detections:
+        if det.image in test_images and det.ok:
+            by_image = by_board.setdefault(det.board, {})
+            by_image.setdefault(det.image, {})[Half.parse(det.half)] = det
+    sets = []
+    for name, a in boards.items():
+        if not all(k in a for k in ("cols", "rows", "square_mm")):
+            continue
+        bs = BoardSet(name, int(a["cols"]), int(a["rows"]), float(a["square_mm"]), [], [], [], [])
+        for image, halves in sorted(by_board.get(name, {}).items()):
+            if Half.LEFT not in halves or Half.RIGHT not in halves:
+                continue
+            dl, dr = halves[Half.LEFT], halves[Half.RIGHT]
+            ids, il, ir = np.intersect1d(dl.ids, dr.ids, return_indices=True)
+            if ids.size == 0:
+                continue
+            bs.images.append(image)
+            bs.ids.append(ids.astype(np.int64))
+            bs.left.append(np.asarray(dl.pixels, dtype=np.float64)[il])
+            bs.right.append(np.asarray(dr.pixels, dtype=np.float64)[ir])
+        if bs.images:
+            sets.append(bs)
+    if not sets:
+        raise BadInputError(
+            "no test image has a known board detected in both halves", path=where, hint=_TEST_HINT
+        )
+    return sets
+
+
+@dataclasses.dataclass
+class ModelBoardTest:
+    """One model's board test: corners, measurement table and the per-zone summary."""
+
+    model: str
+    board: list[str]  # per image
+    images: list[str]
+    square_mm: list[float]  # per image
+    corner_image: np.ndarray  # (C,) int, index into images
+    corner_id: np.ndarray  # (C,) int
+    corner_left: np.ndarray  # (C, 2) px
+    corner_right: np.ndarray  # (C, 2) px
+    corner_xyz: np.ndarray  # (C, 3) mm
+    corner_gap: np.ndarray  # (C,) mm
+    corner_rms: np.ndarray  # (C,) px
+    corner_status: np.ndarray  # (C,) uint8
+    table: BoardTestTable  # image = index into images
+    summary: ZoneSummary  # one row per (board, kind, zone)
+    summary_board: np.ndarray  # (K,) str, the board of each summary row
+
+    @classmethod
+    def from_fields(cls, fields: Mapping[str, Any]) -> ModelBoardTest:
+        """From plain values (:func:`endomeasure.io.records.board_test_fields`)."""
+        values = dict(fields)
+        values["table"] = BoardTestTable(**values["table"])
+        values["summary"] = ZoneSummary(**values["summary"])
+        return cls(**values)
+
+    def image_pixels(self, index: int):
+        """(ids, left, right, xyz) of one image."""
+        sel = self.corner_image == index
+        return (
+            self.corner_id[sel],
+            self.corner_left[sel],
+            self.corner_right[sel],
+            self.corner_xyz[sel],
+        )
+
+
+def _zone_summary_by_board(table, model: str, board_of_row: np.ndarray, zone_mm: float):
+    parts, boards = [], []
+    for board in dict.fromkeys(board_of_row.tolist()):
+        s = zone_summary({model: table.select(board_of_row == board)}, zone_mm)
+        parts.append(s)
+        boards.append(np.full(s.model.shape[0], board).astype(str))
+    if not parts:
+        return zone_summary({model: table}, zone_mm), np.zeros(0, dtype=str)
+    summary = ZoneSummary(*(np.concatenate(c) for c in zip(*parts, strict=True)))
+    return summary, np.concatenate(boards)
+
+
+def run_board_test(model_name: str, model, sets: list[BoardSet], zone_mm: float) -> ModelBoardTest:
+    """Triangulate every corner of every test image with one model and measure the boards."""
+    from endomeasure.solvers.triangulate import triangulate
+
+    images, boards, squares, tables = [], [], [], []
+    corners: dict[str, list] = {k: [] for k in ("image", "id", "l", "r", "xyz", "gap", "rms", "st")}
+    for bs in sets:
+        # one triangulation call for all images of the board
+        tri = triangulate(model, np.concatenate(bs.left), np.concatenate(bs.right), "ml")
+        bounds = np.cumsum([0] + [ids.size for ids in bs.ids])
+        board_images = []
+        for k, image in enumerate(bs.images):
+            sl = slice(bounds[k], bounds[k + 1])
+            corners["image"].append(np.full(bs.ids[k].size, len(images)))
+            images.append(image)
+            boards.append(bs.board)
+            squares.append(bs.square_mm)
+            for key, value in (("id", bs.ids[k]), ("l", bs.left[k]), ("r", bs.right[k]),
+                               ("xyz", tri.points[sl]), ("gap", tri.gap[sl]),
+                               ("rms", tri.rms[sl]), ("st", tri.status[sl])):  # fmt: skip
+                corners[key].append(value)
+            board_images.append(BoardImage(bs.ids[k], tri.points[sl], bs.left[k], bs.right[k]))
+        t = board_test_table(bs.cols, bs.rows, bs.square_mm, board_images)
+        offset = len(images) - len(bs.images)
+        tables.append(t._replace(image=t.image + offset))
+    table = BoardTestTable(*(np.concatenate(c) for c in zip(*tables, strict=True)))
+    board_of_row = (
+        np.asarray(boards, dtype=str)[table.image] if table.image.size else np.zeros(0, str)
+    )
+    summary, summary_board = _zone_summary_by_board(table, model_name, board_of_row, zone_mm)
+    c = {k: np.concatenate(v) for k, v in corners.items()}
+    return ModelBoardTest(
+        model_name, boards, images, squares, c["image"], c["id"], c["l"], c["r"], c["xyz"],
+        c["gap"], c["rms"], c["st"].astype(np.uint8), table, summary, summary_board,
+    )  # fmt: skip
+
+
+# ----- predictions ------------------------------------------------------------------------------
+
+
+class RigidFit(NamedTuple):
+    """A rigid transform fitted between two point sets: ``b ~ (a - centre_a) R^T + centre_b``."""
+
+    rotation: np.ndarray  # (3, 3)
+    centre_a: np.ndarray  # (3,)
+    centre_b: np.ndarray  # (3,)
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """``points`` (..., 3) of the first set's frame in the second's."""
+        return (points - self.centre_a) @ self.rotation.T + self.centre_b
+
+
+def rigid_fit(a: np.ndarray, b: np.ndarray) -> RigidFit:
+    """The rotation and translation mapping points ``a`` onto ``b`` in least squares.
+
+    ``a``, ``b``: shape (N, 3), N >= 3, corresponding points.
+
+    Notes
+    -----
+    Kabsch's SVD solution with the reflection removed (W. Kabsch, Acta Cryst. A32, 1976).
+    """
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    return RigidFit(vt.T @ np.diag([1.0, 1.0, d]) @ u.T, ca, cb)
+
+
+def ideal_board_pixels(model, grid: np.ndarray, xyz: np.ndarray, ql, qr):
+    """Pixels of the ideal board at its estimated pose, in both halves.
+
+    The paper's Section 4 predicts at the "calibration target positions calculated for
+    the test set": the board's corners ``grid`` (N, 3), mm, board frame, are fitted to
+    the triangulated corners ``xyz`` (N, 3), mm (:func:`rigid_fit`) and projected.
+    Corners that do not project keep their detected pixels ``ql``, ``qr`` (N, 2), px.
+    """
+    ok = np.all(np.isfinite(xyz), axis=1)
+    if ok.sum() < 3:
+        return ql, qr
+    ideal = rigid_fit(grid[ok], xyz[ok]).apply(grid)
+    out = []
+    for half, q in (("left", ql), ("right", qr)):
+        proj = model.project(ideal, half)
+        good = (proj.status == 0)[:, None]
+        out.append(np.where(good, proj.pixels, q))
+    return out[0], out[1]
+
+
+def board_predictions(
+    bt: ModelBoardTest, model, grids: Mapping[str, np.ndarray], *, at="board", **propagation
+) -> dict:
+    """Predicted bias, std and its parts for every row of a board test's table.
+
+    ``grids``: each board's corner coordinates by corner id (N, 3), mm, board frame (the
+    ``object_points`` of its parsed spec), for ``at='board'``.
+
+    ``propagation``: the noise and method keywords of
+    :func:`~endomeasure.measure.predict.predict_measurement_error` (``noise`` or
+    ``sigma``, ``param_cov``, ``method``, ...).
+
+    ``at='board'`` predicts at the pixels of the ideal board at its estimated pose
+    (:func:`ideal_board_pixels`), ``at='detections'`` at the detected pixels. The first
+    estimates the error distribution better: a prediction at noisy pixels is itself
+    noisy, and for a segment whose ends carry a large depth noise it is biased upwards
+    (the observed depth difference of its ends tilts the segment, which turns the
+    quadratic depth term into a linear one).
+
+    Returns
+    -------
+    dict of ndarray, shape (M,)
+        ``bias``, ``std``, ``std_image``, ``std_calibration``, ``value``.
+    """
+    from endomeasure.measure.predict import predict_measurement_error
+
+    t = bt.table
+    images = []
+    for k in range(len(bt.images)):
+        ids, ql, qr, xyz = bt.image_pixels(k)
+        if at == "board":
+            grid = np.asarray(grids[bt.board[k]])[np.asarray(ids, dtype=np.int64)]
+            ql, qr = ideal_board_pixels(model, grid, xyz, ql, qr)
+        images.append(BoardImage(ids, xyz, ql, qr))
+    m = t.kind.shape[0]
+    keys = ("bias", "std", "std_image", "std_calibration", "value")
+    out = {key: np.full(m, np.nan) for key in keys}
+    for kind, measure_kind in BOARD_KINDS.items():
+        rows = np.flatnonzero(t.kind == kind)
+        if rows.size == 0:
+            continue
+        ql, qr = stencil_pixels(t, images, kind)
+        pred = predict_measurement_error(model, measure_kind, ql, qr, **propagation)
+        out["bias"][rows] = pred.bias
+        out["std"][rows] = pred.std
+        out["value"][rows] = pred.value
+        if "image" in pred.parts:
+            out["std_image"][rows] = pred.parts["image"][1]
+        if "calibration" in pred.parts:
+            out["std_calibration"][rows] = pred.parts["calibration"][1]
+        elif propagation.get("param_cov") is None:
+            out["std_image"][rows] = pred.std
+    return out
+
+
+def prediction_zones(bt: ModelBoardTest, bias, std, std_img, std_cal, zone_mm) -> list[dict]:
+    """Predicted against actual errors per (board, kind, zone) (module docstring).
+
+    ``bias``, ``std``, ``std_img``, ``std_cal``: (M,) per row of ``bt.table``. Zones with
+    fewer than two measurements are left out.
+    """
+    t = bt.table
+    board_of_row = np.asarray(bt.board, dtype=str)[t.image]
+    ok = np.isfinite(t.error) & np.isfinite(std) & np.isfinite(t.z_mean)
+    rows = []
+    for board in dict.fromkeys(board_of_row.tolist()):
+        for kind, k, sel in zone_groups(t, zone_mm, ok & (board_of_row == board)):
+            e, b, s = t.error[sel], bias[sel], std[sel]
+            if e.size < 2:
+                continue
+            pred_std = float(np.sqrt(np.mean(s**2) + np.var(b)))
+            actual_std = float(np.std(e, ddof=1))
+            rows.append(
+                {
+                    "board": board,
+                    "kind": kind,
+                    "zone_start": float(k * zone_mm),
+                    "zone_end": float((k + 1) * zone_mm),
+                    "n": int(e.size),
+                    "true": float(t.true[sel][0]),
+                    "actual_mean": float(np.mean(e)),
+                    "actual_std": actual_std,
+                    "predicted_mean": float(np.mean(b)),
+                    "predicted_std": pred_std,
+                    "predicted_std_image": float(np.sqrt(np.mean(std_img[sel] ** 2))),
+                    "predicted_std_calibration": float(np.sqrt(np.mean(std_cal[sel] ** 2)))
+                    if np.all(np.isfinite(std_cal[sel]))
+                    else None,
+                    "std_ratio": actual_std / pred_std if pred_std > 0 else None,
+                    "within_band": float(np.mean(np.abs(e - b) <= BAND_SIGMAS * s)),
+                }
+            )
+    return rows
+
+
+def within_band(bt: ModelBoardTest, bias: np.ndarray, std: np.ndarray) -> float:
+    """Fraction of all measurements whose error lies in its predicted band."""
+    error = bt.table.error
+    ok = np.isfinite(error) & np.isfinite(std)
+    return float(np.mean(np.abs(error[ok] - bias[ok]) <= BAND_SIGMAS * std[ok]))
