@@ -96,7 +96,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import functools
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -116,6 +116,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "Match",
+    "MatchSettings",
     "MatchStatus",
     "WARPS",
     "find_match",
@@ -303,12 +304,96 @@ class Match:
         return out
 
 
+@dataclasses.dataclass(frozen=True)
+class MatchSettings:
+    """How :func:`find_matches` searches and when it refuses a point.
+
+    Attributes
+    ----------
+    depth_range_mm : (near, far), mm
+        Working depth range searched (z in the model frame), ``0 < near < far``.
+    patch : int, px
+        Side of the square correlation patch (odd, at least 5).
+    warp : {'plane', 'affine', 'none'}
+        How the search patch is warped into the other half: ``'plane'`` searches with
+        the local affine map between the halves and refines with the exact map of a
+        surface of constant depth; ``'affine'`` uses the affine map throughout;
+        ``'none'`` compares plain square patches.
+    min_score, max_second_ratio, max_precision_px : float
+        Refusal thresholds (:data:`MIN_SCORE`, :data:`MAX_SECOND_RATIO`,
+        :data:`MAX_PRECISION_PX`).
+    noise_sigma : float or None, grey levels
+        Image noise; None estimates it around each point.
+    check_back : bool
+        Search back from the candidate to confirm it (the one-half-only test).
+
+    Raises
+    ------
+    BadInputError
+        For a depth range, patch size or warp that is not valid.
+    """
+
+    depth_range_mm: tuple[float, float] = (8.0, 60.0)
+    patch: int = 15
+    warp: str = "plane"
+    min_score: float = MIN_SCORE
+    max_second_ratio: float = MAX_SECOND_RATIO
+    max_precision_px: float = MAX_PRECISION_PX
+    noise_sigma: float | None = None
+    check_back: bool = True
+
+    def __post_init__(self):
+        try:
+            near, far = (float(v) for v in self.depth_range_mm)
+        except (TypeError, ValueError):
+            raise BadInputError(
+                f"depth range {self.depth_range_mm!r} is not a pair of numbers"
+            ) from None
+        if not (0.0 < near < far and np.isfinite(far)):
+            raise BadInputError(
+                f"depth range {near:g}-{far:g} mm is not valid", hint="give 0 < near < far in mm"
+            )
+        patch = self.patch
+        if not (isinstance(patch, int | np.integer) and patch >= 5 and patch % 2 == 1):
+            raise BadInputError(
+                f"patch size {patch!r} is not valid", hint="use an odd size >= 5 px"
+            )
+        if self.warp not in WARPS:
+            raise BadInputError(
+                f"unknown patch warp {self.warp!r}", hint=f"use one of {', '.join(WARPS)}"
+            )
+        noise = None if self.noise_sigma is None else float(self.noise_sigma)
+        for name, value in (
+            ("depth_range_mm", (near, far)), ("patch", int(patch)),
+            ("min_score", float(self.min_score)),
+            ("max_second_ratio", float(self.max_second_ratio)),
+            ("max_precision_px", float(self.max_precision_px)),
+            ("noise_sigma", noise), ("check_back", bool(self.check_back)),
+        ):  # fmt: skip
+            object.__setattr__(self, name, value)
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """Patch sample offsets, shape (patch * patch, 2), px, row-major."""
+        r = self.patch // 2
+        dv, du = np.mgrid[-r : r + 1, -r : r + 1]
+        return np.stack([du.ravel(), dv.ravel()], axis=-1).astype(np.float64)
+
+
 # ----- image access ----------------------------------------------------------------------
 
 
-def _grey(image: np.ndarray, model: CameraModel) -> tuple[np.ndarray, float, float]:
-    """The image as float64 grey levels, the noise floor of its type and the misfit
-    noise of the search in its grey levels (:data:`MISFIT_DN`)."""
+class _Image(NamedTuple):
+    """The searched image: float64 grey levels (H, W), the noise floor of its type and
+    the search's misfit noise (:data:`MISFIT_DN`), both in its grey levels."""
+
+    grey: np.ndarray
+    floor: float
+    misfit: float
+
+
+def _grey(image: np.ndarray, model: CameraModel) -> _Image:
+    """The image as an :class:`_Image`, checked against the model's sensor."""
     image = np.asarray(image)
     misfit = MISFIT_DN
     width, height = model.config.image_size
@@ -336,7 +421,7 @@ def _grey(image: np.ndarray, model: CameraModel) -> tuple[np.ndarray, float, flo
         floor = 0.0
     else:
         raise BadInputError(f"image of type {image.dtype} is not a grey-level image")
-    return grey, floor, misfit
+    return _Image(grey, floor, misfit)
 
 
 def _half_columns(model: CameraModel, half: Half) -> tuple[int, int]:
@@ -487,24 +572,6 @@ def _local_noise(grey: np.ndarray, pixel: np.ndarray, cols: tuple[int, int], pat
 # ----- the search ----------------------------------------------------------------------
 
 
-@dataclasses.dataclass(frozen=True)
-class _Settings:
-    depth_range_mm: tuple[float, float]
-    patch: int
-    warp: str
-    min_score: float
-    max_second_ratio: float
-    max_precision_px: float
-    spacing_px: float
-
-    @property
-    def offsets(self) -> np.ndarray:
-        """Patch sample offsets, shape (patch * patch, 2), px, row-major."""
-        r = self.patch // 2
-        dv, du = np.mgrid[-r : r + 1, -r : r + 1]
-        return np.stack([du.ravel(), dv.ravel()], axis=-1).astype(np.float64)
-
-
 @dataclasses.dataclass
 class _Search:
     """One direction's search along a curve (internal)."""
@@ -584,9 +651,9 @@ def _signal_score(ncc, template_pos, template_raw, other_pos, other_raw, offsets
     return float(min(1.0, ncc / np.sqrt(factors[0] * factors[1])))
 
 
-def _search(model, grey, pixel, half: Half, settings: _Settings) -> _Search | None:
+def _search(model, grey, pixel, half: Half, settings: MatchSettings) -> _Search | None:
     """Correlate the patch at ``pixel`` along its curve in the other half."""
-    curve = epipolar_curve(model, pixel, half, settings.depth_range_mm, settings.spacing_px)
+    curve = epipolar_curve(model, pixel, half, settings.depth_range_mm, SPACING_PX)
     m = curve.pixels.shape[0]
     if m == 0:
         return None
@@ -889,75 +956,183 @@ def _fmt(q: np.ndarray) -> str:
     return f"({q[0]:.1f}, {q[1]:.1f})"
 
 
-def _match_one(
-    model, grey, floor, misfit, pixel, half: Half, settings, noise_sigma, check_back
-) -> Match:
-    cols = _half_columns(model, half)
-    height = grey.shape[0]
-    offsets = settings.offsets
-    r = settings.patch // 2
-    where = f"point {_fmt(pixel)} in the {half.label} half"
-    if not np.all(_inside(pixel + offsets[[0, -1]], cols, height)):
-        return _refuse(
-            pixel, half, MatchStatus.OUTSIDE,
-            f"{where} is closer than {r + 1} px to the edge of its half, so its "
-            f"{settings.patch}x{settings.patch} patch does not fit",
-        )  # fmt: skip
+# ----- one point's search, step by step -------------------------------------------------
+
+
+class _Refused(Exception):
+    """A refusal inside :func:`_match_one` (never leaves it): the status and message."""
+
+    def __init__(self, status: MatchStatus, message: str):
+        super().__init__(message)
+        self.status = status
+        self.message = message
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Query:
+    """One point's search: what every step of :func:`_match_one` reads."""
+
+    model: CameraModel
+    image: _Image
+    pixel: np.ndarray
+    half: Half
+    settings: MatchSettings
+
+    @functools.cached_property
+    def cols(self) -> tuple[int, int]:
+        return _half_columns(self.model, self.half)
+
+    @functools.cached_property
+    def target(self) -> Half:
+        return other_half(self.half)
+
+    @functools.cached_property
+    def target_cols(self) -> tuple[int, int]:
+        return _half_columns(self.model, self.target)
+
+    @functools.cached_property
+    def offsets(self) -> np.ndarray:
+        return self.settings.offsets
+
+    @property
+    def where(self) -> str:
+        return f"point {_fmt(self.pixel)} in the {self.half.label} half"
+
+    @property
+    def depths(self) -> str:
+        near, far = self.settings.depth_range_mm
+        return f"{near:g}-{far:g} mm"
+
+    def refuse(self, status: MatchStatus, message: str) -> _Refused:
+        return _Refused(status, f"{self.where}{message}")
+
+
+class _Peak(NamedTuple):
+    """The curve sample that correlates best, with the reference patch it was scored by."""
+
+    best: int
+    score: float
+    signal: float
+    template_raw: np.ndarray  # (n,) bilinear samples of the reference patch
+    template_unit: np.ndarray  # (n,) the same, ramp-free and of unit norm
+
+
+class _Refined(NamedTuple):
+    """The sub-pixel match: the pixel, where its patch samples lie and what fits them."""
+
+    pixel: np.ndarray  # (2,) px, in the other half
+    warped: np.ndarray  # (n, 2) px, the final patch offsets in the other half
+    positions: np.ndarray  # (n, 2) px, pixel + warped
+    template_fine: np.ndarray  # (n,) spline samples of the reference patch
+    target_noise: float  # grey levels, around the match
+
+
+def _match_one(query: _Query) -> Match:
+    """The search of one point (module notes): each step either refines what is known
+    about the point or refuses it, with what is known so far in the diagnostics."""
+    fields: dict[str, Any] = {}
+    try:
+        _check_patch_fits(query)
+        noise = _query_noise(query)
+        fields.update(noise_sigma=noise)
+        search = _forward_search(query)
+        precision = _check_texture(query, search, noise, fields)
+        peak = _check_peak(query, search, noise, fields)
+        if query.settings.check_back:
+            _check_back(query, search, peak, fields)
+        _check_score(query, peak.score, peak.signal, "best correlation")
+        refined = _refine_match(query, search, peak)
+        final, signal = _final_score(query, refined, peak, noise)
+        fields.update(score=final, signal_score=signal)
+        _check_score(query, final, signal, "correlation at the refined match")
+        fields["precision_px"] = _refined_precision(query, search, refined, precision, noise)
+        return _matched(query, search, refined.pixel, fields)
+    except _Refused as refusal:
+        return _refuse(query.pixel, query.half, refusal.status, refusal.message, **fields)
+
+
+def _check_patch_fits(query: _Query) -> None:
+    patch = query.settings.patch
+    corners = query.pixel + query.offsets[[0, -1]]
+    if not np.all(_inside(corners, query.cols, query.image.grey.shape[0])):
+        raise query.refuse(
+            MatchStatus.OUTSIDE,
+            f" is closer than {patch // 2 + 1} px to the edge of its half, so its "
+            f"{patch}x{patch} patch does not fit",
+        )
+
+
+def _query_noise(query: _Query) -> float:
+    """The image noise at the query point, grey levels: given or estimated, floored."""
+    given = query.settings.noise_sigma
     noise = (
-        noise_sigma if noise_sigma is not None else _local_noise(grey, pixel, cols, settings.patch)
+        given
+        if given is not None
+        else _local_noise(query.image.grey, query.pixel, query.cols, query.settings.patch)
     )
-    noise = max(float(noise), floor)
+    return max(float(noise), query.image.floor)
 
-    search = _search(model, grey, pixel, half, settings)
-    near, far = settings.depth_range_mm
+
+def _forward_search(query: _Query) -> _Search:
+    search = _search(query.model, query.image.grey, query.pixel, query.half, query.settings)
     if search is None or not search.curve.inside.any():
-        return _refuse(
-            pixel, half, MatchStatus.OUTSIDE,
-            f"{where} is not seen by the other half at {near:g}-{far:g} mm (its ray "
-            "does not project into it)",
-            noise_sigma=noise,
-        )  # fmt: skip
-    curve = search.curve
-    searched = dict(curve=curve.pixels[search.valid], curve_depths_mm=curve.depths_mm[search.valid])
+        raise query.refuse(
+            MatchStatus.OUTSIDE,
+            f" is not seen by the other half at {query.depths} (its ray does not project into it)",
+        )
+    return search
 
-    # the reference patch first: without texture nothing else is meaningful
-    best = search.best
-    direction = _search_direction(search, best)
-    precision = _localisation_precision(grey, pixel, cols, offsets, direction, noise)
+
+def _check_texture(query: _Query, search: _Search, noise: float, fields: dict) -> float:
+    """The reference patch's predicted precision along the curve, px (the first-order
+    estimate of :func:`_localisation_precision`), refused if too poor; without texture
+    nothing later is meaningful, so this comes first."""
+    curve, valid = search.curve, search.valid
+    direction = _search_direction(search, search.best)
+    precision = _localisation_precision(
+        query.image.grey, query.pixel, query.cols, query.offsets, direction, noise
+    )
     # reported: the noise term plus the search's misfit (MISFIT_DN) in quadrature; the
     # texture check uses the noise term alone (what the texture can locate)
-    reported = precision * np.sqrt(1.0 + (misfit / noise) ** 2)
-    fields = dict(noise_sigma=noise, precision_px=reported, back_px=np.nan, **searched)
-    if not precision <= settings.max_precision_px:
-        return _refuse(
-            pixel, half, MatchStatus.UNTEXTURED,
-            f"{where} has too little texture along the search direction ("
+    reported = precision * np.sqrt(1.0 + (query.image.misfit / noise) ** 2)
+    fields.update(
+        precision_px=reported, back_px=np.nan,
+        curve=curve.pixels[valid], curve_depths_mm=curve.depths_mm[valid],
+    )  # fmt: skip
+    limit = query.settings.max_precision_px
+    if not precision <= limit:
+        raise query.refuse(
+            MatchStatus.UNTEXTURED,
+            " has too little texture along the search direction ("
             + (
-                f"it would locate the match to {precision:.2f} px, worse than "
-                f"{settings.max_precision_px:g} px)"
+                f"it would locate the match to {precision:.2f} px, worse than {limit:g} px)"
                 if np.isfinite(precision)
                 else "nothing there rises above the image noise)"
             ),
-            **fields,
-        )  # fmt: skip
-    if best < 0:
-        return _refuse(
-            pixel, half, MatchStatus.OUTSIDE,
-            f"{where} is not seen by the other half at {near:g}-{far:g} mm (no part of "
-            "its epipolar curve has room for the patch there)",
-            **fields,
-        )  # fmt: skip
+        )
+    if search.best < 0:
+        raise query.refuse(
+            MatchStatus.OUTSIDE,
+            f" is not seen by the other half at {query.depths} (no part of its epipolar "
+            "curve has room for the patch there)",
+        )
+    return precision
 
-    ncc = search.ncc
-    score = float(ncc[best])
-    candidate = curve.pixels[best]
-    template_pos = pixel + offsets
-    template_raw, template_unit = _template(grey, pixel, cols, offsets)
-    target_cols = _half_columns(model, other_half(half))
+
+def _check_peak(query: _Query, search: _Search, noise: float, fields: dict) -> _Peak:
+    """Score the curve's best sample and refuse it if a second peak rivals it or it
+    lies where the searchable curve ends."""
+    grey, offsets, settings = query.image.grey, query.offsets, query.settings
+    best = search.best
+    score = float(search.ncc[best])
+    candidate = search.curve.pixels[best]
+    template_raw, template_unit = _template(grey, query.pixel, query.cols, offsets)
     other_pos = candidate + offsets @ search.affine[best].T
-    other_raw = _sample(grey, other_pos[:, 0], other_pos[:, 1], target_cols)
-    signal = _signal_score(score, template_pos, template_raw, other_pos, other_raw, offsets, noise)
-    second = _second_peak(ncc, search.valid, best)
+    other_raw = _sample(grey, other_pos[:, 0], other_pos[:, 1], query.target_cols)
+    signal = _signal_score(
+        score, query.pixel + offsets, template_raw, other_pos, other_raw, offsets, noise
+    )
+    second = _second_peak(search.ncc, search.valid, best)
     ratio = max(second, 0.0) / score if score > 0 else np.nan
     fields.update(candidate=candidate, score=score, signal_score=signal, second_ratio=ratio)
     # ambiguous only if the best is itself credible (a random landscape of low
@@ -966,113 +1141,134 @@ def _match_one(
     # the threshold (requiring the second to pass on its own split repeated texture at
     # the threshold between 'ambiguous' and a failed back search, 'outside')
     if ratio > settings.max_second_ratio and signal >= settings.min_score:
-        return _refuse(
-            pixel, half, MatchStatus.AMBIGUOUS,
-            f"{where}: a second candidate scores {ratio:.2f} of the best "
+        raise query.refuse(
+            MatchStatus.AMBIGUOUS,
+            f": a second candidate scores {ratio:.2f} of the best "
             f"(> {settings.max_second_ratio:g}), e.g. repeated texture",
-            **fields,
-        )  # fmt: skip
+        )
     if _run_end(search.valid, best):
         reason = (
-            f"the end of the working depth range ({near:g}-{far:g} mm)"
-            if best in (0, ncc.size - 1)
+            f"the end of the working depth range ({query.depths})"
+            if best in (0, search.ncc.size - 1)
             else "the edge of the other half"
         )
-        return _refuse(
-            pixel, half, MatchStatus.OUTSIDE,
-            f"{where}: the best candidate lies at {reason}, so the match may be beyond it",
-            **fields,
-        )  # fmt: skip
+        raise query.refuse(
+            MatchStatus.OUTSIDE,
+            f": the best candidate lies at {reason}, so the match may be beyond it",
+        )
+    return _Peak(best, score, signal, template_raw, template_unit)
 
-    if check_back:
-        back = _search(model, grey, candidate, other_half(half), settings)
-        noise_factor = signal / score if score > 0 else np.nan
-        mutual, back_px = _mutual(back, pixel, settings, noise_factor)
-        fields.update(back_px=back_px)
-        if not mutual:
-            why = (
-                f"its best candidate {_fmt(candidate)} matches a different point back"
-                if not back_px <= BACK_TOLERANCE_PX
-                else f"nothing along its epipolar curve correlates credibly (best {score:.2f}, "
-                f"{signal:.2f} corrected for noise, below {settings.min_score:g})"
-            )
-            return _refuse(
-                pixel, half, MatchStatus.OUTSIDE,
-                f"{where}: {why}, so the point is probably not seen in the other half "
-                "(occluded or out of its view)",
-                **fields,
-            )  # fmt: skip
-    if not signal >= settings.min_score:
-        return _refuse(
-            pixel, half, MatchStatus.LOW_SCORE,
-            f"{where}: best correlation {score:.2f} ({signal:.2f} corrected for noise) "
-            f"is below {settings.min_score:g}",
-            **fields,
-        )  # fmt: skip
-    # sub-pixel: parabola along the curve, then 2-D refinement
+
+def _check_back(query: _Query, search: _Search, peak: _Peak, fields: dict) -> None:
+    """Search back from the candidate; refuse the point unless it is found again."""
+    candidate = search.curve.pixels[peak.best]
+    back = _search(query.model, query.image.grey, candidate, query.target, query.settings)
+    noise_factor = peak.signal / peak.score if peak.score > 0 else np.nan
+    mutual, back_px = _mutual(back, query.pixel, query.settings, noise_factor)
+    fields.update(back_px=back_px)
+    if not mutual:
+        why = (
+            f"its best candidate {_fmt(candidate)} matches a different point back"
+            if not back_px <= BACK_TOLERANCE_PX
+            else f"nothing along its epipolar curve correlates credibly (best "
+            f"{peak.score:.2f}, {peak.signal:.2f} corrected for noise, below "
+            f"{query.settings.min_score:g})"
+        )
+        raise query.refuse(
+            MatchStatus.OUTSIDE,
+            f": {why}, so the point is probably not seen in the other half (occluded or "
+            "out of its view)",
+        )
+
+
+def _check_score(query: _Query, score: float, signal: float, what: str) -> None:
+    if not signal >= query.settings.min_score:
+        raise query.refuse(
+            MatchStatus.LOW_SCORE,
+            f": {what} {score:.2f} ({signal:.2f} corrected for noise) is below "
+            f"{query.settings.min_score:g}",
+        )
+
+
+def _refine_match(query: _Query, search: _Search, peak: _Peak) -> _Refined:
+    """Sub-pixel match: a parabola along the curve, then the 2-D refinement
+    (:func:`_refine`; its start is kept where it fails)."""
+    grey, offsets, settings = query.image.grey, query.offsets, query.settings
+    curve, best, ncc = search.curve, peak.best, search.ncc
     s = _parabola_offset(ncc[best - 1], ncc[best], ncc[best + 1])
     q0 = _at_parameter(curve.pixels, best, s)
     affine = _at_parameter(search.affine, best, s)
     depth = float(1.0 / _at_parameter(1.0 / curve.depths_mm, best, s))
     if settings.warp == "plane":
-        warped = _patch_warp(model, pixel, half, depth, offsets, affine)
+        warped = _patch_warp(query.model, query.pixel, query.half, depth, offsets, affine)
     else:
         warped = offsets @ affine.T  # the identity for warp 'none'
     shape = settings.warp != "none"  # plain NCC: translation only
     # the refinement compares spline-interpolated patches on both sides (see _sample_spline)
-    template_fine = _sample_spline(grey, template_pos, cols)[0]
-    target_noise = max(_local_noise(grey, q0, target_cols, settings.patch), floor)
+    template_fine = _sample_spline(grey, query.pixel + offsets, query.cols)[0]
+    target_noise = max(_local_noise(grey, q0, query.target_cols, settings.patch), query.image.floor)
     refined = _refine(
-        grey, q0, warped, offsets, template_fine, target_cols, height, shape, target_noise
-    )
+        grey, q0, warped, offsets, template_fine, query.target_cols, grey.shape[0], shape,
+        target_noise,
+    )  # fmt: skip
     q, warped = refined if refined is not None else (q0, warped)
-    pos = q + warped
-    other_raw = _sample(grey, pos[:, 0], pos[:, 1], target_cols)
-    final = float(_ncc_rows(other_raw[None], template_unit, offsets)[0])
-    signal = _signal_score(final, template_pos, template_raw, pos, other_raw, offsets, noise)
-    fields.update(score=final, signal_score=signal)
-    if not signal >= settings.min_score:
-        return _refuse(
-            pixel, half, MatchStatus.LOW_SCORE,
-            f"{where}: correlation at the refined match {final:.2f} ({signal:.2f} "
-            f"corrected for noise) is below {settings.min_score:g}",
-            **fields,
-        )  # fmt: skip
+    return _Refined(q, warped, q + warped, template_fine, target_noise)
 
-    # the precision in the searched half, at the final warp (see the module notes)
+
+def _final_score(
+    query: _Query, refined: _Refined, peak: _Peak, noise: float
+) -> tuple[float, float]:
+    """NCC and its noise-corrected value (``signal_score``) at the refined match."""
+    grey, offsets, pos = query.image.grey, query.offsets, refined.positions
+    other_raw = _sample(grey, pos[:, 0], pos[:, 1], query.target_cols)
+    final = float(_ncc_rows(other_raw[None], peak.template_unit, offsets)[0])
+    signal = _signal_score(
+        final, query.pixel + offsets, peak.template_raw, pos, other_raw, offsets, noise
+    )
+    return final, signal
+
+
+def _refined_precision(
+    query: _Query, search: _Search, refined: _Refined, precision: float, noise: float
+) -> float:
+    """``precision_px`` of the match: :func:`_match_precision` in the searched half, at
+    the final warp, from the reference patch's first-order ``precision`` (module notes)."""
+    offsets, pos, warped = query.offsets, refined.positions, refined.warped
     a_fit = np.linalg.lstsq(offsets, warped - warped.mean(axis=0), rcond=None)[0].T
-    tangent = _curve_tangent(curve.pixels, search.valid, best)
+    tangent = _curve_tangent(search.curve.pixels, search.valid, search.best)
     try:
         stretch = 1.0 / float(np.linalg.norm(np.linalg.solve(a_fit, tangent)))
     except np.linalg.LinAlgError:
         stretch = np.nan
-    design = np.stack([template_fine, np.ones(offsets.shape[0]), *offsets.T], axis=-1)
-    fine = _sample_spline(grey, pos, target_cols)[0]
+    design = np.stack([refined.template_fine, np.ones(offsets.shape[0]), *offsets.T], axis=-1)
+    fine = _sample_spline(query.image.grey, pos, query.target_cols)[0]
     gain = float(np.linalg.lstsq(design, fine, rcond=None)[0][0])
     energy_ref = 2.0 * noise**2 / precision**2
-    fields["precision_px"] = _match_precision(
-        energy_ref / stretch**2, offsets.shape[0], gain, noise, target_noise, misfit,
-        _interpolated_noise_correlation(pos),
+    return _match_precision(
+        energy_ref / stretch**2, offsets.shape[0], gain, noise, refined.target_noise,
+        query.image.misfit, _interpolated_noise_correlation(pos),
     )  # fmt: skip
 
-    ray_ref = curve.origin, curve.direction
-    ray_other = model.rays(q, other_half(half))
-    perp = common_perpendicular(ray_ref[0], ray_ref[1], ray_other.origins, ray_other.directions)
-    if ray_other.status != Status.OK or perp.status != Status.OK:
-        return _refuse(
-            pixel, half, MatchStatus.OUTSIDE,
-            f"{where}: the matched pixel {_fmt(q)} has no ray that meets the point's ray",
-            **fields,
-        )  # fmt: skip
-    foot = ray_ref[0] + perp.s1 * ray_ref[1]
+
+def _matched(query: _Query, search: _Search, q: np.ndarray, fields: dict) -> Match:
+    """The accepted match with its point: the common perpendicular of the two rays."""
+    origin, direction = search.curve.origin, search.curve.direction
+    ray = query.model.rays(q, query.target)
+    perp = common_perpendicular(origin, direction, ray.origins, ray.directions)
+    if ray.status != Status.OK or perp.status != Status.OK:
+        raise query.refuse(
+            MatchStatus.OUTSIDE,
+            f": the matched pixel {_fmt(q)} has no ray that meets the point's ray",
+        )
+    foot = origin + perp.s1 * direction
     return Match(
-        pixel, half, MatchStatus.OK, "", match=q, depth_mm=float(foot[2]),
+        query.pixel, query.half, MatchStatus.OK, "", match=q, depth_mm=float(foot[2]),
         point=perp.midpoint, ray_gap_mm=float(perp.gap), **fields,
     )  # fmt: skip
 
 
 def _mutual(
-    back: _Search | None, pixel: np.ndarray, settings: _Settings, noise_factor: float
+    back: _Search | None, pixel: np.ndarray, settings: MatchSettings, noise_factor: float
 ) -> tuple[bool, float]:
     """Whether the back search from the candidate confirms the query pixel.
 
@@ -1100,39 +1296,13 @@ def _mutual(
     return bool(at_query >= settings.max_second_ratio * best and credible), distance
 
 
-def _settings(depth_range_mm, patch, warp, min_score, max_second_ratio, max_precision_px):
-    try:
-        near, far = (float(v) for v in depth_range_mm)
-    except (TypeError, ValueError):
-        raise BadInputError(f"depth range {depth_range_mm!r} is not a pair of numbers") from None
-    if not (0.0 < near < far and np.isfinite(far)):
-        raise BadInputError(
-            f"depth range {near:g}-{far:g} mm is not valid", hint="give 0 < near < far in mm"
-        )
-    if not (isinstance(patch, int | np.integer) and patch >= 5 and patch % 2 == 1):
-        raise BadInputError(f"patch size {patch!r} is not valid", hint="use an odd size >= 5 px")
-    if warp not in WARPS:
-        raise BadInputError(f"unknown patch warp {warp!r}", hint=f"use one of {', '.join(WARPS)}")
-    return _Settings(
-        (near, far), int(patch), warp, float(min_score), float(max_second_ratio),
-        float(max_precision_px), SPACING_PX,
-    )  # fmt: skip
-
-
 def find_matches(
     model: CameraModel,
     image: np.ndarray,
     pixels: np.ndarray,
     half: Half | str,
-    *,
-    depth_range_mm: tuple[float, float] = (8.0, 60.0),
-    patch: int = 15,
-    warp: str = "plane",
-    min_score: float = MIN_SCORE,
-    max_second_ratio: float = MAX_SECOND_RATIO,
-    max_precision_px: float = MAX_PRECISION_PX,
-    noise_sigma: float | None = None,
-    check_back: bool = True,
+    settings: MatchSettings | None = None,
+    **options: Any,
 ) -> list[Match]:
     """Find, for each point of one half, the point of the other half that shows the same
     surface point (the search is described in the module notes).
@@ -1147,22 +1317,12 @@ def find_matches(
         Full-image coordinates of the points in ``half``.
     half : Half or {'left', 'right'}
         The half the points are in.
-    depth_range_mm : (near, far), mm
-        Working depth range searched (z in the model frame).
-    patch : int, px
-        Side of the square correlation patch (odd).
-    warp : {'plane', 'affine', 'none'}
-        How the search patch is warped into the other half: ``'plane'`` (default) searches
-        with the local affine map between the halves and refines with the exact map of
-        a surface of constant depth; ``'affine'`` uses the affine map throughout;
-        ``'none'`` compares plain square patches.
-    min_score, max_second_ratio, max_precision_px : float
-        Refusal thresholds (:data:`MIN_SCORE`, :data:`MAX_SECOND_RATIO`,
-        :data:`MAX_PRECISION_PX`).
-    noise_sigma : float, optional
-        Image noise, grey levels; estimated around the point by default.
-    check_back : bool
-        Search back from the candidate to confirm it (the one-half-only test).
+    settings : MatchSettings, optional
+        How to search and when to refuse; the defaults of :class:`MatchSettings` if
+        not given.
+    **options
+        Fields of :class:`MatchSettings` (``patch=21``, ``warp='none'``, ...) that
+        replace those of ``settings``.
 
     Returns
     -------
@@ -1177,8 +1337,10 @@ def find_matches(
         settings.
     """
     half = Half.parse(half)
-    settings = _settings(depth_range_mm, patch, warp, min_score, max_second_ratio, max_precision_px)
-    grey, floor, misfit = _grey(image, model)
+    settings = (
+        MatchSettings(**options) if settings is None else dataclasses.replace(settings, **options)
+    )
+    image = _grey(image, model)
     points = np.asarray(pixels, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
         raise BadInputError(f"points must have shape (N, 2), got {points.shape}")
@@ -1191,18 +1353,20 @@ def find_matches(
             f"point {_fmt(bad)} is not in the {half.label} half",
             hint=f"the split is at column {model.config.split}",
         )
-    return [
-        _match_one(model, grey, floor, misfit, q.copy(), half, settings, noise_sigma, check_back)
-        for q in points
-    ]
+    return [_match_one(_Query(model, image, q.copy(), half, settings)) for q in points]
 
 
 def find_match(
-    model: CameraModel, image: np.ndarray, pixel: np.ndarray, half: Half | str, **options
+    model: CameraModel,
+    image: np.ndarray,
+    pixel: np.ndarray,
+    half: Half | str,
+    settings: MatchSettings | None = None,
+    **options: Any,
 ) -> Match:
     """The match of one point, ``pixel`` (array_like, shape (2,), px, full-image
-    coordinates in ``half``); ``options`` and the rest as :func:`find_matches`."""
+    coordinates in ``half``); the rest as :func:`find_matches`."""
     pixel = np.asarray(pixel, dtype=np.float64)
     if pixel.shape != (2,):
         raise BadInputError(f"a point needs two coordinates (u, v), got shape {pixel.shape}")
-    return find_matches(model, image, pixel[None], half, **options)[0]
+    return find_matches(model, image, pixel[None], half, settings, **options)[0]
