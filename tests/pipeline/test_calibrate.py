@@ -18,9 +18,9 @@ from typer.testing import CliRunner
 from endomeasure import cli
 from endomeasure.conventions import Half
 from endomeasure.io.export import read_opencv_yaml
+from endomeasure.io.records import model_from_record
 from endomeasure.io.session import Detection, edit_session, open_session
 from endomeasure.models import model_from_dict
-from endomeasure.io.records import model_from_record
 
 runner = CliRunner()
 NOISE_PX = 0.1

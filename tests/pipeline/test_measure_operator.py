@@ -170,7 +170,7 @@ def test_matched_points_uncertainty_is_the_match_precision(scene_session):
         scene_session, "raytrace", SCENE, left, None, "length", sigma=0.1, store=False
     )
     assert given.noise.source == "given" and given.noise.sigma == 0.1
-    assert given.error.std_image > report.error.std_image  # 0.1 px on all four pixels vs ~0.03 on two
+    assert given.error.std_image > report.error.std_image  # 0.1 px on all four vs ~0.03 on two
 
 
 def test_a_refused_point_stops_the_measurement(scene_session, tmp_path):

@@ -49,16 +49,33 @@ import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
 from endomeasure.conventions import Half, Status, in_half
 from endomeasure.errors import BadInputError, GoalNotMetError
 
-# Re-exported for callers of the earlier locations (bench/); defined below the pipeline.
-from endomeasure.io.records import CalibratedModel, load_calibrated_model  # noqa: F401
-from endomeasure.measure.board_runs import BoardSet, ModelBoardTest, run_board_test  # noqa: F401
+if TYPE_CHECKING:
+    from endomeasure.measure.board_runs import ModelBoardTest
+
+_MOVED = {
+    "CalibratedModel": "endomeasure.io.records",
+    "load_calibrated_model": "endomeasure.io.records",
+    "BoardSet": "endomeasure.measure.board_runs",
+    "ModelBoardTest": "endomeasure.measure.board_runs",
+    "run_board_test": "endomeasure.measure.board_runs",
+}
+"""Names that moved below the pipeline, still importable from here (loaded on use)."""
+
+
+def __getattr__(name: str):
+    if name in _MOVED:
+        import importlib
+
+        return getattr(importlib.import_module(_MOVED[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "DEFAULT_PATCH_PX",
@@ -398,14 +415,14 @@ def measure_points(
     MatchRefusedError
         The search refused a point (nothing is stored).
     """
-    from endomeasure.io.records import MEASUREMENT_RECORD, measurement_record, next_measurement_name
+    from endomeasure.io import records
     from endomeasure.io.session import edit_session, open_session
     from endomeasure.measure.kinds import validate
 
     request = _checked_request(kind, left, right, warn_percent, plot)
     with open_session(session) as reader:
         reader.image_info(image)  # an unknown image is a BadInputError listing the images
-        cm = load_calibrated_model(reader, model_name, session)
+        cm = records.load_calibrated_model(reader, model_name, session)
         image_pixels = reader.image(image) if request.search else None
     n = _check_count(request, kind)
     ql, qr, matches, written = _pixel_pairs(cm.model, request, image_pixels, patch, plot)
@@ -429,9 +446,9 @@ def measure_points(
                            written)  # fmt: skip
     if store:
         with edit_session(session) as writer:
-            name = next_measurement_name(writer.record_names(MEASUREMENT_RECORD))
+            name = records.next_measurement_name(writer.record_names(records.MEASUREMENT_RECORD))
             report = dataclasses.replace(report, record=name)
-            writer.write_record(measurement_record(name, report, pixel_std))
+            writer.write_record(records.measurement_record(name, report, pixel_std))
     return report
 
 
@@ -544,9 +561,9 @@ def board_test(
     -------
     BoardTestReport
     """
-    from endomeasure.io.records import board_test_record
+    from endomeasure.io.records import board_test_record, load_calibrated_model
     from endomeasure.io.session import edit_session, open_session
-    from endomeasure.measure.board_runs import board_sets
+    from endomeasure.measure.board_runs import board_sets, run_board_test
 
     if not (math.isfinite(zone_mm) and zone_mm > 0):
         raise BadInputError(f"the zone width must be a positive number of mm, not {zone_mm}")

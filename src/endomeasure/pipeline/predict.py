@@ -27,9 +27,17 @@ import numpy as np
 
 from endomeasure.errors import BadInputError
 
-# Re-exported for callers of the earlier locations (bench/); defined below the pipeline.
-from endomeasure.measure.board_runs import BAND_SIGMAS  # noqa: F401
-from endomeasure.measure.board_runs import prediction_zones as _zone_rows  # noqa: F401
+_MOVED = {"BAND_SIGMAS": "BAND_SIGMAS", "_zone_rows": "prediction_zones"}
+"""Names that moved to :mod:`endomeasure.measure.board_runs`, still importable from here."""
+
+
+def __getattr__(name: str):
+    if name in _MOVED:
+        from endomeasure.measure import board_runs
+
+        return getattr(board_runs, _MOVED[name])
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "DEFAULT_DEPTHS_MM",
