@@ -1,9 +1,16 @@
-"""Camera models of the split-sensor probe: the contract, ``pinhole`` and ``raytrace``."""
+"""Camera models of the split-sensor probe: the contract, the two models, the registry."""
 
 from endomeasure.models.base import CameraModel, ModelConfig, Projection, ProjectionJacobian, Rays
 from endomeasure.models.pinhole import PinholeModel
 from endomeasure.models.raytrace import RaytraceModel
-from endomeasure.models.registry import MODELS, model_class, model_from_dict
+from endomeasure.models.registry import (
+    MODELS,
+    model_class,
+    model_from_dict,
+    model_start,
+    register_model,
+    unregister_model,
+)
 
 __all__ = [
     "CameraModel",
@@ -16,4 +23,7 @@ __all__ = [
     "MODELS",
     "model_class",
     "model_from_dict",
+    "model_start",
+    "register_model",
+    "unregister_model",
 ]

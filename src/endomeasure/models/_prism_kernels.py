@@ -1,13 +1,14 @@
 """Compiled per-ray kernels of the ``raytrace`` model: tracing and ray aiming.
 
-Why compiled: forward projection aims every point with about six traces and a 2x2
-Broyden update each. In numpy that is some 200 array operations per block of points;
-the profile (``docs/benchmarks.md``) showed 0.7 M points/s, a third of
-``cv2.projectPoints``, with the time spread over numpy call overhead and memory traffic
-rather than any one operation. A scalar loop compiled with numba does the same
-arithmetic in registers. The formulas are the ones of
-:func:`endomeasure.geometry.rays.refract` (vector Snell) and plane intersection; the
-tests check these kernels against those numpy kernels.
+Why compiled: forward projection aims every point with several traces and a 2x2
+Broyden update each. In numpy that is a few hundred small array operations per block of
+points, and the time goes to call overhead and memory traffic rather than to any one
+operation; a scalar loop compiled with numba does the same arithmetic in registers
+(throughput: ``docs/benchmarks.md``, section ``models``). The formulas are those of
+:func:`endomeasure.geometry.rays.refract` (vector Snell) and plane intersection. The
+tests check the model built on these kernels against independent oracles
+(``tests/models/test_raytrace.py``: Snell's law in its angle form at each face, the
+Fermat least-optical-path pixel), not against the numpy functions.
 
 All kernels use numba's ``error_model="numpy"``: a division by zero gives inf/NaN (and
 then a status), never an exception out of vectorised code.

@@ -16,9 +16,9 @@ Everything else a solver needs is part of the contract too, so solvers and pipel
 never ask a model's name: the Jacobians with respect to points and parameters
 (:meth:`CameraModel.project_jacobians`), a :class:`~endomeasure.models.projector.Projector`
 that may keep warm-start state during an optimisation (:meth:`CameraModel.projector`),
-parameter units (``PARAM_UNITS``), and the model's own calibration start
-(``SEEDED_FROM``, :meth:`CameraModel.initial_calibration`, see
-:mod:`endomeasure.models.start`).
+parameter units (``PARAM_UNITS``), and where the model's calibration starts from
+(``SEEDED_FROM``; the start itself is registered with the model, see
+:mod:`endomeasure.models.registry` and :mod:`endomeasure.models.start`).
 """
 
 from __future__ import annotations
@@ -32,7 +32,6 @@ import numpy as np
 
 from endomeasure.conventions import STATUS_DTYPE, Half, Status, in_half
 from endomeasure.models.projector import Projector
-from endomeasure.models.start import Start, StartContext
 
 __all__ = [
     "CameraModel",
@@ -171,8 +170,8 @@ class CameraModel(abc.ABC):
     """Base class of camera models; see the module docstring.
 
     Subclasses define ``NAME``, ``PARAM_NAMES``, ``PARAM_UNITS``, ``GROUPS`` (name ->
-    slice of ``params``), ``DEFAULT_FIXED``, and implement :meth:`_rays` and
-    :meth:`_project` for one half on flat arrays and :meth:`initial_calibration`.
+    slice of ``params``), ``DEFAULT_FIXED``, ``SEEDED_FROM``, and implement :meth:`_rays`
+    and :meth:`_project` for one half on flat arrays.
     Optional, with generic defaults: :meth:`_constraints` (valid parameter values),
     :meth:`_rays_rows` (one parameter vector per pixel), closed-form Jacobians
     (:meth:`_project_jacobian`, :meth:`_project_jacobians`) and ``PROJECTOR``.
@@ -455,29 +454,6 @@ class CameraModel(abc.ABC):
         """The solver-side projector of this model kind over observations in ``halves``
         (N,), warm-started from a previous projector's ``state``."""
         return self.PROJECTOR(self, halves, state)
-
-    @classmethod
-    def initial_calibration(cls, ctx: StartContext, base: Start | None) -> Start:
-        """The model's own calibration start (see :mod:`endomeasure.models.start`).
-
-        Parameters
-        ----------
-        ctx : StartContext
-        base : Start or None
-            The refined start of the ``SEEDED_FROM`` model over the same observations,
-            or None when ``SEEDED_FROM`` is None (start from the detections alone).
-
-        Returns
-        -------
-        Start
-            Model (with ``ctx.config``) and board poses ``T_model_board``.
-
-        Raises
-        ------
-        CalibrationError
-            When no start can be found.
-        """
-        raise NotImplementedError(f"the {cls.NAME} model has no calibration start")
 
     def _project_jacobian(self, points: np.ndarray, half: Half):
         """Default: central differences of :meth:`_project`; models override it with

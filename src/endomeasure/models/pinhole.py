@@ -155,14 +155,6 @@ class PinholeModel(CameraModel):
             dq_dall[:, :, self.GROUPS["t_right_left"]] = dq_dcam
         return pixels, status, dq_dp, dq_dall[:, :, free]
 
-    @classmethod
-    def initial_calibration(cls, ctx, base):
-        """Each half calibrated on its own with OpenCV, combined into a pair
-        (:func:`endomeasure.models.pinhole_start.initial_pinhole`)."""
-        from endomeasure.models.pinhole_start import initial_pinhole
-
-        return initial_pinhole(ctx)
-
     def _rays(self, pixels, half):
         return self._rays_rows(pixels, half, ParamBatch(self.params[None], None))
 

@@ -13,6 +13,7 @@ import numpy as np
 from endomeasure.conventions import Half
 from endomeasure.errors import CalibrationError
 from endomeasure.geometry.rotations import rotation_matrix, rotation_vector
+from endomeasure.models.pinhole import PinholeModel
 from endomeasure.models.start import Observations, Start, StartContext
 
 __all__ = ["initial_pinhole"]
@@ -67,16 +68,15 @@ def _mean_rotation(Rs: np.ndarray) -> np.ndarray:
     return U @ D @ Vt
 
 
-def initial_pinhole(ctx: StartContext) -> Start:
-    """Per-half OpenCV calibration combined into a ``pinhole`` pair.
+def initial_pinhole(ctx: StartContext, base: None = None) -> Start:
+    """Per-half OpenCV calibration combined into a ``pinhole`` pair (a start from the
+    detections alone: ``base`` is None).
 
     Returns
     -------
     Start
         The pair (configuration ``ctx.config``) and ``T_left_board`` per image.
     """
-    from endomeasure.models.pinhole import PinholeModel
-
     obs, config = ctx.obs, ctx.config
     intr_l, poses_l = _calibrate_half(obs, Half.LEFT, config.image_size, config.split)
     intr_r, poses_r = _calibrate_half(obs, Half.RIGHT, config.image_size, config.split)

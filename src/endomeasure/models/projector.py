@@ -42,9 +42,7 @@ class Projector:
     makes with the same model and points first.
     """
 
-    def __init__(
-        self, template: CameraModel, halves: np.ndarray, state: np.ndarray | None = None
-    ):
+    def __init__(self, template: CameraModel, halves: np.ndarray, state: np.ndarray | None = None):
         self.halves = np.asarray(halves, dtype=np.int8)
         self.free = np.flatnonzero(template.free_mask)
         self.groups = [

@@ -91,9 +91,7 @@ class Aim(NamedTuple):
 
 
 _SHARED_TRACE_PARAMS = frozenset({"rear_a", "rear_b", "rear_d", "n_glass"})
-_TRACE_PARAMS = {
-    half: _SHARED_TRACE_PARAMS | {f"{half.label}_{k}" for k in "abd"} for half in Half
-}
+_TRACE_PARAMS = {half: _SHARED_TRACE_PARAMS | {f"{half.label}_{k}" for k in "abd"} for half in Half}
 """The parameters a half's prism trace depends on (the other front face does not count)."""
 
 
@@ -381,14 +379,6 @@ class RaytraceModel(CameraModel):
             return (plus - minus) / (2.0 * step)
         centre = self._miss(x, y, half, points)[0]
         return (plus - centre) / step if plus is not None else (centre - minus) / step
-
-    @classmethod
-    def initial_calibration(cls, ctx, base):
-        """From the refined ``pinhole`` pair, or the user's seed with its poses
-        (:func:`endomeasure.models.raytrace_start.seed_raytrace`)."""
-        from endomeasure.models.raytrace_start import seed_raytrace
-
-        return seed_raytrace(ctx, base)
 
     def with_params(self, params: np.ndarray) -> RaytraceModel:
         """A new model with other parameters.

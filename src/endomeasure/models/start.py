@@ -2,11 +2,11 @@
 
 Calibration (:mod:`endomeasure.solvers.calibrate`) is the same bundle adjustment for
 every model; only the start is model-specific. A model class says where its start comes
-from (:attr:`~endomeasure.models.base.CameraModel.SEEDED_FROM`) and builds it in
-:meth:`~endomeasure.models.base.CameraModel.initial_calibration` from a
-:class:`StartContext`: the corner observations, the configuration, the user's values,
-and a ``refine`` callable (the solver's bundle adjustment) for the small fits a seeding
-may need. Nothing here depends on the solvers, so models stay below them.
+from (:attr:`~endomeasure.models.base.CameraModel.SEEDED_FROM`), and the
+:data:`Initialiser` registered with it (:func:`~endomeasure.models.registry.register_model`)
+builds it from a :class:`StartContext`: the corner observations, the configuration, the
+user's values, and a ``refine`` callable (the solver's bundle adjustment) for the small
+fits a seeding may need. Nothing here depends on the solvers, so models stay below them.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 if TYPE_CHECKING:
     from endomeasure.models.base import CameraModel, ModelConfig
 
-__all__ = ["Observations", "Fit", "Start", "StartContext"]
+__all__ = ["Observations", "Fit", "Start", "StartContext", "Initialiser"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,3 +123,9 @@ class StartContext:
     values: Mapping[str, float]
     seed: CameraModel | None
     refine: Refine
+
+
+Initialiser = Callable[[StartContext, "Start | None"], Start]
+"""``start(ctx, base) -> Start``: a model's calibration start. ``base`` is the refined
+start of its ``SEEDED_FROM`` model over the same observations (None for a model started
+from the detections alone). Raises CalibrationError when no start can be found."""

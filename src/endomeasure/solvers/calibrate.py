@@ -5,7 +5,7 @@ image by bundle adjustment (:mod:`endomeasure.solvers.bundle`): the reprojection
 in pixels over every detected corner of every image in both halves, the same cost for
 every model, so models are compared on the same footing.
 
-The start is the model's own (:meth:`~endomeasure.models.base.CameraModel.initial_calibration`):
+The start is the model's own (registered with it, :func:`~endomeasure.models.model_start`):
 a model built from the detections alone (``SEEDED_FROM`` None) gets one joint pass
 before the outlier rule sees it; a model seeded from another one is started from that
 model's refined calibration, which is computed first (or taken from ``start``). No
@@ -27,7 +27,7 @@ import numpy as np
 from endomeasure.conventions import Half, in_half
 from endomeasure.errors import BadInputError, CalibrationError
 from endomeasure.geometry.rotations import rotation_matrix
-from endomeasure.models import CameraModel, ModelConfig, model_class
+from endomeasure.models import CameraModel, ModelConfig, model_class, model_start
 from endomeasure.models.start import Observations, Start, StartContext
 from endomeasure.solvers.bundle import OUTLIER_FLOOR_PX, BundleProblem, fit_with_outliers, refine
 from endomeasure.solvers.covariance import marginal_covariance
@@ -594,7 +594,7 @@ class _Chain:
     def start_of(self, cls: type[CameraModel], config: ModelConfig, seed=None) -> Start:
         base = None if cls.SEEDED_FROM is None else self.refined(model_class(cls.SEEDED_FROM))
         ctx = StartContext(self.obs, config, dict(self.options.values), seed, self.refine)
-        start = cls.initial_calibration(ctx, base)
+        start = model_start(cls.NAME)(ctx, base)
         model = start.model.with_values(ctx.values)
         if base is None:
             # a start from the detections alone is rough: check the geometry it shows,
