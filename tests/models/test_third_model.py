@@ -1,5 +1,6 @@
 """The model contract holds: a third model, defined and registered here and nowhere else,
-is projected, traced, calibrated, board-tested and error-predicted through the public API.
+is projected, traced, calibrated, board-tested and error-predicted through the public API
+(the solver, then the command line on a session).
 
 The model is the pinhole pair with OpenCV's rational distortion (``k4 k5 k6`` in the
 denominator, ``cv2.CALIB_RATIONAL_MODEL``). It implements only the contract's required
@@ -176,3 +177,80 @@ def test_registration_is_checked(registered):
     assert MODELS[registered.NAME] is registered
     with pytest.raises(ValueError, match="already registered"):
         register_model(type("Other", (registered,), {}), rational_start)
+
+
+# ----- the whole pipeline, through the command line ---------------------------------------
+
+TEST_DEPTHS_MM = (12.0, 16.0, 20.0, 24.0)
+CALIB_NOISE_PX = 0.05
+BOARD_TEST_REL_PERCENT = 1.0  # segments and areas (noisy calibration, exact test corners)
+
+
+@pytest.fixture(scope="module")
+def session(registered, tmp_path_factory):
+    from tests.pipeline.measure_data import BOARD, BOARD_COLS, BOARD_ROWS, SQUARE_MM, board_points
+    from tests.solvers.calibration_data import BOARD_COLS as CAL_COLS
+    from tests.solvers.calibration_data import BOARD_ROWS as CAL_ROWS
+
+    from endomeasure.io.session import Detection, ImageRecord, edit_session
+
+    truth = rational_truth()
+    data = synthetic_views(truth, np.random.default_rng(5), n_images=14, noise_px=CALIB_NOISE_PX)
+    path = tmp_path_factory.mktemp("third") / "probe.h5"
+    blank = np.zeros((480, 640), dtype=np.uint8)
+    with edit_session(path, create=True) as w:
+        w.set_metadata(image_size=(640, 480), split=320)
+        specs = {k: f"chessboard:{CAL_COLS}x{CAL_ROWS}:{k.removeprefix('sq')}" for k in data.boards}
+        for spec in specs.values():
+            w.write_board(spec, spec)
+        w.write_board(
+            BOARD, BOARD, {"cols": BOARD_COLS, "rows": BOARD_ROWS, "square_mm": SQUARE_MM}
+        )
+        dets = [
+            Detection(v.name, specs[v.board], h, v.ids[h].astype(np.int32), v.pixels[h], 1.0, "")
+            for v in data.views
+            for h in Half
+        ]
+        records = []
+        for depth in TEST_DEPTHS_MM:
+            name = f"test_{depth:04.1f}"
+            p = board_points(depth)
+            records.append(ImageRecord(name, blank, f"{name}.png", "0" * 64, "test"))
+            for h in Half:
+                q = truth.project(p, h)
+                assert np.all(q.status == Status.OK)
+                ids = np.arange(p.shape[0], dtype=np.int32)
+                dets.append(Detection(name, BOARD, h, ids, q.pixels, 1.0, ""))
+        w.write_images(records)
+        w.write_detections(dets)
+    return path
+
+
+def _run(*args):
+    import json
+
+    from typer.testing import CliRunner
+
+    from endomeasure import cli
+
+    result = CliRunner().invoke(cli.app, [*map(str, args), "--json"])
+    assert result.exit_code == 0, result.output
+    return json.loads(result.stdout)
+
+
+def test_the_third_model_goes_through_calibrate_board_test_and_predict_error(registered, session):
+    name = registered.NAME
+    calibration = _run("calibrate", session, "--model", name)
+    assert calibration["models"][name]["residual_sigma_px"] == pytest.approx(
+        CALIB_NOISE_PX, rel=0.15
+    )
+    board = _run("measure", session, "--board-test", "--model", name)
+    relative = [r["relative_mean_percent"] for r in board["summary"] if r["model"] == name]
+    relative = [r for r in relative if r is not None]  # segments and areas
+    assert len(relative) >= 6
+    assert max(abs(r) for r in relative) < BOARD_TEST_REL_PERCENT
+    predicted = _run("predict-error", session, "--board-test", "--model", name)
+    assert predicted["model"] == name and predicted["calibration"]
+    assert len(predicted["zones"]) >= 6
+    for row in predicted["zones"]:
+        assert row["predicted_std"] > 0 and row["predicted_std_calibration"] > 0, row
