@@ -29,7 +29,6 @@ import numpy as np
 __all__ = [
     "Half",
     "Status",
-    "half_of_pixels",
     "in_half",
 ]
 
@@ -108,8 +107,3 @@ def in_half(pixels: np.ndarray, half: Half, split: int, image_size: tuple[int, i
     else:
         inside_u = (u >= edge) & (u < width - 0.5)
     return inside_u & (v >= -0.5) & (v < height - 0.5)
-
-
-def half_of_pixels(pixels: np.ndarray, split: int) -> np.ndarray:
-    """The half (0 left, 1 right) each pixel column belongs to, shape (...)."""
-    return (pixels[..., 0] >= split - 0.5).astype(np.int8)

@@ -17,7 +17,6 @@ from endomeasure.solvers.uncertainty import (
     monte_carlo,
     pixel_covariance,
     propagate,
-    sigma_from_residuals,
     unscented,
 )
 
@@ -285,14 +284,6 @@ def test_bad_noise_descriptions_are_refused(args, message):
 def test_unknown_method_is_refused():
     with pytest.raises(BadInputError, match="unknown propagation method"):
         propagate(lambda X: X[..., 0], np.zeros(1), np.eye(1), "taylor")
-
-
-def test_sigma_from_residuals():
-    r = np.array([[0.1, -0.1], [0.2, -0.2], [0.0, 0.0]])
-    assert sigma_from_residuals(r) == pytest.approx(np.sqrt(0.1 / 6))
-    assert sigma_from_residuals(r, n_params=2) == pytest.approx(np.sqrt(0.1 / 4))
-    with pytest.raises(BadInputError, match="too few"):
-        sigma_from_residuals(r, n_params=6)
 
 
 def test_measurement_function_is_triangulate_then_formula(raytrace_model, rng):

@@ -46,9 +46,6 @@ class HalfQuality:
     brightness: float
     contrast: float
 
-    def as_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
 
 def edge_width_px(
     gray: np.ndarray, ids: np.ndarray, pixels: np.ndarray, cols: int, reach_fraction: float

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["rotation_matrix", "rotation_vector", "rotation_jacobian", "skew", "transform_points"]
+__all__ = ["rotation_matrix", "rotation_vector", "rotation_jacobian", "skew"]
 
 _SMALL_ANGLE = 1e-8  # rad; below this the series form is exact to float64 precision
 
@@ -118,19 +118,3 @@ def rotation_vector(R: np.ndarray) -> np.ndarray:
         sign = np.where(sign == 0, 1.0, sign)
         rvec[near_pi] = axis * (sign * theta[near_pi])[..., None]
     return rvec
-
-
-def transform_points(R: np.ndarray, t: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply ``p' = R p + t``.
-
-    Parameters
-    ----------
-    R : ndarray, shape (..., 3, 3)
-    t : ndarray, shape (..., 3), mm
-    points : ndarray, shape (..., 3), mm
-
-    Returns
-    -------
-    ndarray, shape (..., 3), mm
-    """
-    return np.einsum("...ij,...j->...i", R, points) + t

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import zlib
-from typing import Any
 
 import numpy as np
 
@@ -287,8 +286,3 @@ def plan_set(preset: Preset, set_name: str, seed: int) -> list[Shot]:
     if set_name not in preset.sets:
         raise ValueError(f"the preset {preset.name!r} defines no {set_name!r} set")
     return _PLANNERS[set_name](preset, seed)
-
-
-def describe_set(preset: Preset, set_name: str) -> dict[str, Any]:
-    """The preset's protocol for a set, as plain data (for the manifest)."""
-    return dict(preset.sets[set_name])

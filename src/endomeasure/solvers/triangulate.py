@@ -13,16 +13,16 @@ work for central and non-central models alike:
 Why the ML solve runs in pixel space
 ------------------------------------
 Minimising the reprojection error over the three point coordinates needs the forward
-projection, which for the ``raytrace`` model is an iterative ray aiming (about 7 us per
-point and half, so a Gauss-Newton loop with a finite-difference Jacobian costs some
-20 projections per point). The same optimum can be found from backward rays alone,
-which are closed form: a point ``p`` seen in both halves is the same thing as a pair of
-pixels ``(q_L, q_R)`` whose rays intersect. So the ML problem is
+projection, which for the ``raytrace`` model is an iterative ray aiming, and a
+Gauss-Newton loop with a finite-difference Jacobian needs several of them per point and
+step. The same optimum can be found from backward rays alone, which are closed form: a
+point ``p`` seen in both halves is the same thing as a pair of pixels ``(q_L, q_R)``
+whose rays intersect. So the ML problem is
 
     minimise |q_L - q_L_obs|^2 + |q_R - q_R_obs|^2   subject to   g(q_L, q_R) = 0,
 
-with ``g`` the signed distance between the two rays (the ray gap with a sign), and the
-point is the intersection of the rays of the optimal pixels. Linearising ``g`` at the
+with ``g = (o_L - o_R) . (d_L x d_R)`` the coplanarity of the two rays (zero exactly
+when they meet), and the point is the intersection of the rays of the optimal pixels. Linearising ``g`` at the
 current pixels ``x`` gives the closed-form step (Sampson's correction, iterated)
 
     x' = x_obs - grad g(x) * (g(x) + grad g(x) . (x_obs - x)) / |grad g(x)|^2
@@ -64,23 +64,23 @@ METHODS = ("ml", "midpoint")
 
 ML_TOL_PX = 1e-6
 """The ML iteration stops when no pixel moves by more than this (px). The iteration
-contracts by a factor of order 1e-4 per step (the curvature of the ray-gap function
-times the residual), so the remaining error after stopping is far below 1e-9 px."""
+contracts by the curvature of the coplanarity function times the residual per step, a
+small factor, so the error left after stopping is far below this step."""
 
 JET_REFRESH_PX = 1e-3
 """The ray derivatives are renewed only while the pixels still move by more than this
-(px); smaller steps reuse the previous ones (a chord step). The ML optimum then has the
-gradient direction of pixels within 1e-3 px, which moves it by < 1e-7 px (measured
-against renewing every step), and saves a third of the traces."""
+(px); smaller steps reuse the previous ones (a chord step), which saves the neighbour
+traces of the last steps. Those derivatives come from pixels within this distance of the
+optimum and only set the direction of the final correction, so the optimum hardly moves."""
 
 ML_MAX_ITER = 20
-"""Steps before a point is declared ``NOT_CONVERGED``; three to four suffice in practice."""
+"""Steps before a point is declared ``NOT_CONVERGED`` (well-posed points need a few)."""
 
 FD_STEP_PX = 1e-4
-"""Forward-difference step of the ray-gap gradient (px). Truncation error ~ step x
-curvature (about 1e-6 relative) and round-off ~ trace precision / step (the models
-trace to ~1e-10 px, about 1e-6 relative): the gradient only sets the direction of the
-ML correction, so a relative error of 1e-6 moves the optimum by 1e-6 x the residual."""
+"""Forward-difference step of the coplanarity gradient (px): it balances truncation
+(step times curvature) against round-off (trace precision over step), both of order 1e-6
+relative. The gradient only sets the direction of the ML correction, so such an error
+moves the optimum by the same fraction of the residual."""
 
 
 class Triangulation(NamedTuple):
@@ -121,11 +121,6 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a * b).sum(axis=-1)
-
-
-def _coplanarity(o1, d1, o2, d2) -> np.ndarray:
-    """Triple product ``(o1 - o2) . (d1 x d2)``, mm: zero when the two lines meet."""
-    return _dot(o1 - o2, _cross(d1, d2))
 
 
 def _inward_steps(x: np.ndarray, half: Half, model: CameraModel) -> np.ndarray:

@@ -58,7 +58,6 @@ __all__ = [
     "pixel_sigmas",
     "checked_sigma",
     "propagate",
-    "sigma_from_residuals",
     "unscented",
 ]
 
@@ -256,29 +255,6 @@ def input_covariance(
     cov[4 * n_points :, 4 * n_points :] = pc
     blocks["calibration"] = slice(4 * n_points, 4 * n_points + f)
     return cov, blocks
-
-
-def sigma_from_residuals(residuals: np.ndarray, n_params: int = 0) -> float:
-    """Image-coordinate noise estimated from reprojection residuals.
-
-    Parameters
-    ----------
-    residuals : ndarray, shape (N, 2), px
-        Residual vectors of a least-squares fit (e.g. calibration).
-    n_params : int
-        Parameters estimated by that fit (degrees of freedom removed).
-
-    Returns
-    -------
-    float, px
-        ``sqrt(sum r^2 / (2 N - n_params))``: the per-coordinate standard deviation.
-    """
-    r = np.asarray(residuals, dtype=np.float64).reshape(-1)
-    r = r[np.isfinite(r)]
-    dof = r.size - n_params
-    if dof <= 0:
-        raise BadInputError("too few residuals to estimate the image noise")
-    return float(np.sqrt(np.sum(r * r) / dof))
 
 
 def _sqrt_columns(cov: np.ndarray, blocks: Mapping[str, slice] | None):
