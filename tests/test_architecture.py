@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import ast
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -184,3 +185,140 @@ def test_base_modules_need_only_the_standard_library(module):
     assert result.returncode == 0, result.stderr
     third_party = set(json.loads(result.stdout)) - set(sys.stdlib_module_names) - {"endomeasure"}
     assert third_party == set()
+
+
+# ----- the shape of the code ----------------------------------------------------------------
+
+MAX_FUNCTION_LINES = 120
+"""Issue 14: a function longer than this is split into named steps."""
+MODEL_BLIND_PARTS = ("solvers", "pipeline")
+"""Parts that work for every registered model through the contract, never by its name."""
+
+
+def _runtime_imports(node):
+    """Import nodes that run (not under ``if TYPE_CHECKING:``)."""
+    if isinstance(node, ast.Import | ast.ImportFrom):
+        yield node
+    for child in ast.iter_child_nodes(node):
+        if isinstance(child, ast.If) and "TYPE_CHECKING" in ast.dump(child.test):
+            continue
+        yield from _runtime_imports(child)
+
+
+def module_graph() -> dict[str, set[str]]:
+    """Every import between endomeasure modules that runs, lazy ones included; ``from
+    package import submodule`` counts as importing the submodule."""
+    names = {name for name, _ in modules()}
+    graph: dict[str, set[str]] = {}
+    for module, path in modules():
+        edges = graph.setdefault(module, set())
+        is_package = path.name == "__init__.py"
+        for node in _runtime_imports(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                edges |= {alias.name for alias in node.names if alias.name in names}
+                continue
+            base = node.module or ""
+            if node.level:
+                parts = module.split(".") if is_package else module.split(".")[:-1]
+                parts = parts[: len(parts) - node.level + 1]
+                base = ".".join(parts + ([node.module] if node.module else []))
+            for alias in node.names:
+                sub = f"{base}.{alias.name}"
+                edges.add(sub if sub in names else base)
+        graph[module] = {target for target in edges if target in names and target != module}
+    return graph
+
+
+def test_there_is_no_import_cycle():
+    graph = module_graph()
+    assert len(graph) > 40
+    cycles = []
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+
+    def visit(node, path):
+        state[node] = 1
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                cycles.append(" -> ".join(path[path.index(nxt) :] + [nxt]))
+            elif nxt not in state:
+                visit(nxt, [*path, nxt])
+        state[node] = 2
+
+    for start in sorted(graph):
+        if start not in state:
+            visit(start, [start])
+    assert cycles == []
+
+
+def test_no_pipeline_module_imports_another():
+    violations = [
+        f"{module} imports {target}"
+        for module, targets in module_graph().items()
+        if part_of(module) == "pipeline"
+        for target in targets
+        if part_of(target) == "pipeline" and target != "endomeasure.pipeline"
+    ]
+    assert violations == []
+
+
+def _docstring_nodes(tree):
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef):
+            body = node.body
+            if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+                yield body[0].value
+
+
+def test_solvers_and_pipelines_never_name_a_model():
+    from endomeasure.models import MODELS
+
+    violations = []
+    checked = 0
+    for module, path in modules():
+        if part_of(module) not in MODEL_BLIND_PARTS:
+            continue
+        tree = ast.parse(path.read_text())
+        allowed = {id(node) for node in _docstring_nodes(tree)}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.arguments):  # a default may name the usual model
+                allowed |= {id(d) for d in (*node.defaults, *node.kw_defaults) if d is not None}
+        for node in ast.walk(tree):
+            checked += 1
+            if isinstance(node, ast.Constant) and node.value in MODELS and id(node) not in allowed:
+                violations.append(f"{module}:{node.lineno} names the {node.value} model")
+            sides = (node.left, *node.comparators) if isinstance(node, ast.Compare) else ()
+            if any(
+                isinstance(side, ast.Attribute) and side.attr == "NAME" for side in sides
+            ) and any(
+                isinstance(side, ast.Constant) and isinstance(side.value, str) for side in sides
+            ):
+                violations.append(f"{module}:{node.lineno} compares a model's NAME with a name")
+    assert checked > 1000
+    assert violations == []
+
+
+def test_no_function_is_longer_than_the_limit():
+    long = []
+    for module, path in modules():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                lines = node.end_lineno - node.lineno + 1
+                if lines > MAX_FUNCTION_LINES:
+                    long.append(f"{module}:{node.lineno} {node.name} has {lines} lines")
+    assert long == []
+
+
+DATE = re.compile(r"\b20\d\d-\d\d-\d\d\b")
+SEED_LIST = re.compile(r"\bseeds? \d+ ?(?:[,-]|to|and) ?\d+", re.I)
+
+
+def test_docstrings_carry_no_dates_or_seed_lists():
+    """Measured figures live in the generated docs, next to the command that makes them."""
+    found = []
+    for module, path in modules():
+        for node in _docstring_nodes(ast.parse(path.read_text())):
+            text = str(node.value)
+            for pattern in (DATE, SEED_LIST):
+                for match in pattern.finditer(text):
+                    found.append(f"{module}:{node.lineno} {match.group(0)!r}")
+    assert found == []
