@@ -30,6 +30,7 @@ start points through the window and curvature estimates (second order for the fi
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import numpy as np
 
@@ -126,8 +127,6 @@ def symmetric_precision(
     :func:`~endomeasure.interpolation.noise_gain`, their correlation neglected) and ``l``
     its leverage ``(J N^-1 J^T)_mm``.
     """
-    from scipy.ndimage import spline_filter1d
-
     gray = np.asarray(gray)
     c = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
     steps = np.asarray(steps, dtype=np.float64)
@@ -135,38 +134,97 @@ def symmetric_precision(
     if steps.shape != (n, 2, 2):
         raise ValueError(f"steps must have shape ({n}, 2, 2), not {steps.shape}")
     problem = symmetric_problem(gray, c, steps, curvature, sigma_squares)
+    k = _illumination_gradient(problem, c) if illumination else None
+    fit = _linearised_fit(problem, c, k)
+    points, sample_weights = _residual_samples(problem, c, k, fit.gain_rows)
+    influence = _pixel_influence(c, points, sample_weights)
+    if noise is None:
+        variance = _residual_variance(
+            fit.residual, fit.jacobian, problem.weights, fit.inverse, points
+        )
+        pixel_var = variance[:, None, None]
+    elif np.ndim(noise) == 0:
+        variance = np.full(n, float(noise))
+        pixel_var = variance[:, None, None]
+    else:
+        variance, pixel_var = _noise_map_variance(noise, gray.shape, influence)
+    size = influence.patches.shape[-1]
+    patches = influence.patches
+    covariance = np.einsum(
+        "nayx,nbyx,nyx->nab", patches, patches, pixel_var * np.ones((1, size, size))
+    )
+    covariance[~fit.finite] = np.nan
+    return CornerPrecision(covariance, variance)
+
+
+def _illumination_gradient(problem, c: np.ndarray) -> np.ndarray:
+    """The illumination gradient ``k`` (n, 2) at the corners ``c``, by weighted least
+    squares (the residual is linear in ``k``)."""
     weights = problem.weights  # (n, M)
     offsets = problem.window.offsets  # (M, 2)
     hx, hy = offsets[:, 0], offsets[:, 1]
+    _, _, plus, minus = symmetric_system(problem, c, None)
+    total = plus + minus
+    design = np.stack([hx[None] * total, hy[None] * total], axis=-1)  # (n, M, 2)
+    wd = design * weights[..., None]
+    k_normal = wd.transpose(0, 2, 1) @ design
+    ridge = 1e-12 * np.trace(k_normal, axis1=1, axis2=2)[:, None, None] + 1e-300
+    k_rhs = wd.transpose(0, 2, 1) @ (plus - minus)[..., None]
+    return np.linalg.solve(k_normal + ridge * np.eye(2), k_rhs)[..., 0]
 
-    k = None
-    if illumination:
-        _, _, plus, minus = symmetric_system(problem, c, None)
-        total = plus + minus
-        design = np.stack([hx[None] * total, hy[None] * total], axis=-1)  # (n, M, 2)
-        wd = design * weights[..., None]
-        k_normal = wd.transpose(0, 2, 1) @ design
-        ridge = 1e-12 * np.trace(k_normal, axis1=1, axis2=2)[:, None, None] + 1e-300
-        k_rhs = wd.transpose(0, 2, 1) @ (plus - minus)[..., None]
-        k = np.linalg.solve(k_normal + ridge * np.eye(2), k_rhs)[..., 0]
+
+class _Linearised(NamedTuple):
+    """The weighted fit linearised at the solution."""
+
+    residual: np.ndarray  # (n, M)
+    jacobian: np.ndarray  # (n, M, p)
+    inverse: np.ndarray  # (n, p, p) N^-1, NaN where singular
+    finite: np.ndarray  # (n,) bool, N regular
+    gain_rows: np.ndarray  # (n, 2, M) d c / d r_m, the (u, v) rows of N^-1 J^T W
+
+
+def _linearised_fit(problem, c: np.ndarray, k: np.ndarray | None) -> _Linearised:
     residual, jacobian, _, _ = symmetric_system(problem, c, k)
-    weighted = jacobian * weights[..., None]
+    weighted = jacobian * problem.weights[..., None]
     normal = weighted.transpose(0, 2, 1) @ jacobian  # (n, p, p)
     finite = np.isfinite(normal).all(axis=(1, 2))
     finite[finite] &= np.linalg.matrix_rank(normal[finite]) == normal.shape[-1]
     inverse = np.full_like(normal, np.nan)
     inverse[finite] = np.linalg.inv(normal[finite])
     gain_rows = (inverse @ weighted.transpose(0, 2, 1))[:, :2]  # (n, 2, M): d c / d r_m
+    return _Linearised(residual, jacobian, inverse, finite, gain_rows)
 
-    # sample positions and their weights in the residual
-    shift = problem.shift if problem.shift is not None else np.zeros((n, len(offsets), 2))
+
+def _residual_samples(
+    problem, c: np.ndarray, k: np.ndarray | None, gain_rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The positions of the residuals' samples (n, 2M, 2), px, and their weights in
+    the corner (n, 2, 2M): ``A_m (1 -+ k.h_m)``."""
+    weights = problem.weights
+    offsets = problem.window.offsets
+    hx, hy = offsets[:, 0], offsets[:, 1]
+    shift = problem.shift if problem.shift is not None else np.zeros((len(c), len(offsets), 2))
     centre = c[:, None] + shift  # (n, M, 2)
     tilt = np.zeros_like(weights) if k is None else k[:, :1] * hx[None] + k[:, 1:] * hy[None]
     points = np.concatenate([centre + offsets[None], centre - offsets[None]], axis=1)
     factor = np.concatenate([1.0 - tilt, -(1.0 + tilt)], axis=1)  # (n, 2M)
     sample_weights = np.concatenate([gain_rows, gain_rows], axis=2) * factor[:, None]
+    return points, sample_weights
 
-    # per-corner coefficient patches around the rounded corner
+
+class _Influence(NamedTuple):
+    """Each pixel's weight in a corner's (u, v), on a square patch per corner."""
+
+    patches: np.ndarray  # (n, 2, size, size): g = B^-1 S^T a, for u and v
+    corner0: np.ndarray  # (n, 2) int, pixel (u, v) of each patch's first entry
+
+
+def _pixel_influence(c: np.ndarray, points: np.ndarray, sample_weights: np.ndarray) -> _Influence:
+    """Scatter the sample weights onto the B-spline coefficients with each sample's
+    interpolation weights, then onto the pixels by the prefilter (module notes)."""
+    from scipy.ndimage import spline_filter1d
+
+    n = len(c)
     reach = np.abs(points - np.round(c)[:, None]).max(initial=0.0) if n else 0.0
     half = int(np.ceil(reach)) + 2 + PREFILTER_MARGIN_PX
     size = 2 * half + 1
@@ -188,31 +246,29 @@ def symmetric_precision(
     # B^-T = B^-1 away from the patch edges (a symmetric convolution's inverse)
     for axis in (2, 3):
         patches = spline_filter1d(patches, order=3, axis=axis, mode="mirror")
+    return _Influence(patches, corner0)
 
-    if noise is None:
-        variance = _residual_variance(residual, jacobian, weights, inverse, points)
-        pixel_var = variance[:, None, None]
-    elif np.ndim(noise) == 0:
-        variance = np.full(n, float(noise))
-        pixel_var = variance[:, None, None]
-    else:
-        noise = np.asarray(noise, dtype=np.float64)
-        if noise.shape != gray.shape:
-            raise ValueError(f"noise must be a scalar or of shape {gray.shape}, not {noise.shape}")
-        height, width = noise.shape
-        span = np.arange(size)
-        vv = np.clip(corner0[:, 1, None] + span, 0, height - 1)
-        uu = np.clip(corner0[:, 0, None] + span, 0, width - 1)
-        pixel_var = noise[vv[:, :, None], uu[:, None, :]]  # (n, size, size)
-        influence = patches[:, 0] ** 2 + patches[:, 1] ** 2
-        variance = np.sum(pixel_var * influence, axis=(1, 2)) / np.maximum(
-            np.sum(influence, axis=(1, 2)), 1e-300
-        )
-    covariance = np.einsum(
-        "nayx,nbyx,nyx->nab", patches, patches, pixel_var * np.ones((1, size, size))
+
+def _noise_map_variance(
+    noise, shape: tuple[int, int], influence: _Influence
+) -> tuple[np.ndarray, np.ndarray]:
+    """For a per-pixel noise map: each corner's influence-weighted mean variance (n,)
+    and the map's values on its patch (n, size, size), grey levels^2."""
+    noise = np.asarray(noise, dtype=np.float64)
+    if noise.shape != shape:
+        raise ValueError(f"noise must be a scalar or of shape {shape}, not {noise.shape}")
+    patches, corner0 = influence
+    size = patches.shape[-1]
+    height, width = noise.shape
+    span = np.arange(size)
+    vv = np.clip(corner0[:, 1, None] + span, 0, height - 1)
+    uu = np.clip(corner0[:, 0, None] + span, 0, width - 1)
+    pixel_var = noise[vv[:, :, None], uu[:, None, :]]  # (n, size, size)
+    weight = patches[:, 0] ** 2 + patches[:, 1] ** 2
+    variance = np.sum(pixel_var * weight, axis=(1, 2)) / np.maximum(
+        np.sum(weight, axis=(1, 2)), 1e-300
     )
-    covariance[~finite] = np.nan
-    return CornerPrecision(covariance, variance)
+    return variance, pixel_var
 
 
 def _residual_variance(
