@@ -690,17 +690,7 @@ def measure(
     square areas on every test image, mean error and std per zone, kind and model.
     """
     if board_test:
-        from endomeasure.pipeline.measure import board_test as run_board_test
-
-        console = _stderr_console()
-        with _progress(console, "board test", enabled=not json_output) as on_progress:
-            report = run_board_test(
-                session, model if model else "all", zone_mm, plot, on_progress=on_progress
-            )
-        if json_output:
-            _print_json(report.to_dict())
-            return
-        _render_board_test(console, report)
+        _measure_board_test(session, model, zone_mm, plot, json_output)
         return
 
     from endomeasure.errors import BadInputError
@@ -727,24 +717,8 @@ def measure(
         )
     except MatchRefusedError as exc:
         # show what the search found before the one-line error (exit 1)
-        if json_output:
-            _print_json(
-                {
-                    "session": str(session),
-                    "model": model,
-                    "image": image,
-                    "kind": kind,
-                    "measured": False,
-                    "error": exc.one_line(),
-                    "matches": [m.to_dict() for m in exc.matches],
-                    "plot": exc.plot,
-                }
-            )
-        else:
-            console = _stderr_console()
-            _render_matches(console, exc.matches)
-            if exc.plot:
-                console.print(f"plot: {exc.plot}")
+        _report_refusal(exc, json_output, session=str(session), model=model, image=image,
+                        kind=kind)  # fmt: skip
         raise
     if json_output:
         document = report.to_dict()
@@ -757,6 +731,39 @@ def measure(
     _render_measurement(console, report)
     if report.plot:
         console.print(f"plot: {report.plot}")
+
+
+def _measure_board_test(session, model, zone_mm, plot, json_output) -> None:
+    from endomeasure.pipeline.measure import board_test as run_board_test
+
+    console = _stderr_console()
+    with _progress(console, "board test", enabled=not json_output) as on_progress:
+        report = run_board_test(
+            session, model if model else "all", zone_mm, plot, on_progress=on_progress
+        )
+    if json_output:
+        _print_json(report.to_dict())
+    else:
+        _render_board_test(console, report)
+
+
+def _report_refusal(exc: Any, json_output: bool, **request: str) -> None:
+    """What the automatic search found, before the refusal's one-line error."""
+    if json_output:
+        _print_json(
+            {
+                **request,
+                "measured": False,
+                "error": exc.one_line(),
+                "matches": [m.to_dict() for m in exc.matches],
+                "plot": exc.plot,
+            }
+        )
+        return
+    console = _stderr_console()
+    _render_matches(console, exc.matches)
+    if exc.plot:
+        console.print(f"plot: {exc.plot}")
 
 
 def _render_matches(console: Console, matches: list[Any]) -> None:

@@ -142,7 +142,7 @@ class MatchRefusedError(GoalNotMetError):
 
 
 def _match_other_half(model, image: np.ndarray, query: np.ndarray, half: Half, patch: int) -> list:
-    """Matches in the other half of operator points given in ``half`` (issue 9)."""
+    """Matches in the other half of operator points given in ``half``."""
     from endomeasure.measure.correspondence import find_matches
 
     return find_matches(model, image, query, half, patch=patch)

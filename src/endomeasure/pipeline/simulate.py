@@ -98,6 +98,79 @@ def _remove_stale(folder: Path, set_name: str) -> None:
             path.unlink()
 
 
+def _render_shot(loaded, set_name: str, shot, folder: Path, seed: int, noise_free: bool):
+    """Render one image with its truth file; its manifest entry."""
+    import cv2
+
+    from endomeasure.simulate.render import render
+    from endomeasure.simulate.truth import image_truth
+
+    rng = None if noise_free else _noise_rng(seed, set_name, shot.index)
+    result = render(loaded, shot.target, rng=rng, noise_free=noise_free)
+    png = folder / f"{shot.name}.png"
+    if not cv2.imwrite(str(png), result.image, [cv2.IMWRITE_PNG_COMPRESSION, _PNG_COMPRESSION]):
+        raise OSError(f"could not write {png}")
+    info = {
+        "noise_free": bool(noise_free),
+        "seed": int(seed),
+        "exposure": result.exposure,
+        "supersampling": f"{loaded.supersampling}x{loaded.supersampling}",
+    }
+    truth = image_truth(loaded, shot, png.name, info)
+    (folder / f"{shot.name}.json").write_text(json.dumps(truth, indent=1) + "\n")
+    entry = {"image": f"{set_name}/{png.name}", "truth": f"{set_name}/{shot.name}.json"}
+    if "board_spec" in truth:
+        entry["board_spec"] = truth["board_spec"]
+        entry["distance_mm"] = round(truth["distance_mm"], 4)
+        entry["board_fully_visible"] = all(truth["board_fully_visible"].values())
+    return entry
+
+
+def _kept_sets(manifest_path: Path, rendered: dict, loaded, seed: int, noise_free: bool) -> dict:
+    """The sets of an earlier run in the folder that this run did not render, when they
+    were made by the same preset data (as far as those sets depend on it), seed and noise."""
+    from endomeasure.simulate.preset import data_digest, restrict_to_sets
+
+    if not manifest_path.is_file():
+        return {}
+    try:
+        old = json.loads(manifest_path.read_text())
+        kept = {k: v for k, v in old.get("sets", {}).items() if k not in rendered}
+        same_run = (
+            old.get("seed") == seed
+            and old.get("noise_free") == bool(noise_free)
+            and data_digest(restrict_to_sets(old.get("preset_data", {}), kept))
+            == data_digest(loaded.for_sets(kept))
+        )
+    except (ValueError, AttributeError, TypeError):
+        return {}
+    return kept if same_run else {}
+
+
+def _write_manifest(manifest_path: Path, loaded, manifest_sets: dict, seed, noise_free) -> None:
+    from endomeasure.simulate.preset import data_digest
+
+    # the preset as far as the folder's sets depend on it: adding a set to a preset
+    # leaves the manifests of its other sets unchanged
+    recorded = loaded.for_sets(manifest_sets)
+    manifest = {
+        "format": MANIFEST_FORMAT,
+        "version": MANIFEST_VERSION,
+        "created_by": f"endomeasure {__version__}",
+        "seed": int(seed),
+        "noise_free": bool(noise_free),
+        "preset": {"name": loaded.name, "source": loaded.source, "sha256": data_digest(recorded)},
+        "image_size": list(loaded.image_size),
+        "split": loaded.split,
+        "truth_model": loaded.truth_model.to_dict(),
+        "sets": {k: manifest_sets[k] for k in sorted(manifest_sets)},
+        "preset_data": recorded,
+    }
+    tmp = manifest_path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(manifest, indent=1) + "\n")
+    tmp.replace(manifest_path)
+
+
 def simulate(
     out_dir: str | os.PathLike,
     preset: str | os.PathLike = "default",
@@ -133,12 +206,8 @@ def simulate(
     BadInputError
         Unknown preset or set, negative seed, or an output folder that cannot be written.
     """
-    import cv2
-
-    from endomeasure.simulate.preset import data_digest, load_preset, restrict_to_sets
-    from endomeasure.simulate.render import render
+    from endomeasure.simulate.preset import load_preset
     from endomeasure.simulate.scenes import plan_set
-    from endomeasure.simulate.truth import image_truth
 
     start = time.perf_counter()
     if int(seed) < 0:
@@ -165,78 +234,21 @@ def simulate(
             folder.mkdir(exist_ok=True)
             _remove_stale(folder, name)
             entries = []
-            fully = 0
             for shot in shots:
-                rng = None if noise_free else _noise_rng(seed, name, shot.index)
-                result = render(loaded, shot.target, rng=rng, noise_free=noise_free)
-                png = folder / f"{shot.name}.png"
-                if not cv2.imwrite(
-                    str(png), result.image, [cv2.IMWRITE_PNG_COMPRESSION, _PNG_COMPRESSION]
-                ):
-                    raise OSError(f"could not write {png}")
-                info = {
-                    "noise_free": bool(noise_free),
-                    "seed": int(seed),
-                    "exposure": result.exposure,
-                    "supersampling": f"{loaded.supersampling}x{loaded.supersampling}",
-                }
-                truth = image_truth(loaded, shot, png.name, info)
-                (folder / f"{shot.name}.json").write_text(json.dumps(truth, indent=1) + "\n")
-                entry = {"image": f"{name}/{png.name}", "truth": f"{name}/{shot.name}.json"}
-                if "board_spec" in truth:
-                    entry["board_spec"] = truth["board_spec"]
-                    entry["distance_mm"] = round(truth["distance_mm"], 4)
-                    whole = all(truth["board_fully_visible"].values())
-                    entry["board_fully_visible"] = whole
-                    fully += whole
-                entries.append(entry)
+                entries.append(_render_shot(loaded, name, shot, folder, seed, noise_free))
                 done += 1
                 if on_progress is not None:
                     on_progress(done, total, shot.name)
             manifest_sets[name] = {"protocol": loaded.sets[name], "images": entries}
+            fully = sum(bool(e.get("board_fully_visible", False)) for e in entries)
             report_sets[name] = {
                 "images": len(entries),
                 "fully_visible": fully if name != "scene" else None,
                 "files": [e["image"] for e in entries],
             }
-        # keep the sets of earlier runs that this run did not render, when they were made
-        # by the same preset data (as far as those sets depend on it), seed and noise
         manifest_path = out / MANIFEST_NAME
-        if manifest_path.is_file():
-            try:
-                old = json.loads(manifest_path.read_text())
-                kept = {k: v for k, v in old.get("sets", {}).items() if k not in manifest_sets}
-                same_run = (
-                    old.get("seed") == seed
-                    and old.get("noise_free") == bool(noise_free)
-                    and data_digest(restrict_to_sets(old.get("preset_data", {}), kept))
-                    == data_digest(loaded.for_sets(kept))
-                )
-                if same_run:
-                    manifest_sets.update(kept)
-            except (ValueError, AttributeError, TypeError):
-                pass
-        # the preset as far as the folder's sets depend on it: adding a set to a preset
-        # leaves the manifests of its other sets unchanged
-        recorded = loaded.for_sets(manifest_sets)
-        manifest = {
-            "format": MANIFEST_FORMAT,
-            "version": MANIFEST_VERSION,
-            "created_by": f"endomeasure {__version__}",
-            "seed": int(seed),
-            "noise_free": bool(noise_free),
-            "preset": {
-                "name": loaded.name, "source": loaded.source, "sha256": data_digest(recorded)
-            },
-            "image_size": list(loaded.image_size),
-            "split": loaded.split,
-            "truth_model": loaded.truth_model.to_dict(),
-            "sets": {k: manifest_sets[k] for k in sorted(manifest_sets)},
-            "preset_data": recorded,
-        }  # fmt: skip
-        tmp = manifest_path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(manifest, indent=1) + "\n")
-        tmp.replace(manifest_path)
+        manifest_sets.update(_kept_sets(manifest_path, manifest_sets, loaded, seed, noise_free))
+        _write_manifest(manifest_path, loaded, manifest_sets, seed, noise_free)
     except OSError as exc:
         raise BadInputError(
             f"cannot write the simulated images ({exc.strerror or exc})",
