@@ -192,6 +192,75 @@ def _lens_jacobian(x, y, faces, n_glass, px, py, pz, h, out):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _broyden(x, y, ex, ey, s, b11, b12, b21, b22, faces, n_glass, px, py, pz, tol_x, tol_y,
+             max_iter):  # fmt: skip
+    """Broyden's iteration from lens coordinates (x, y) with offset (ex, ey) and inverse
+    Jacobian ``b``: returns the solution, its ray parameter and its status."""
+    result = _NOT_CONVERGED
+    sx = -(b11 * ex + b12 * ey)
+    sy = -(b21 * ex + b22 * ey)
+    if abs(sx) < tol_x and abs(sy) < tol_y:  # a warm start already on the point
+        x += sx
+        y += sy
+        result = _OK if s > 0.0 else _BEHIND
+    for _ in range(max_iter if result == _NOT_CONVERGED else 0):
+        nex, ney, s, st = _offset(x + sx, y + sy, faces, n_glass, px, py, pz)
+        h = 0
+        while st != _OK and h < _MAX_HALVINGS:  # keep the ray inside the prism
+            sx *= 0.5
+            sy *= 0.5
+            nex, ney, s, st = _offset(x + sx, y + sy, faces, n_glass, px, py, pz)
+            h += 1
+        if st != _OK:
+            result = st
+            break
+        # good Broyden update of the inverse Jacobian: B += (s - B f) s^T B / (s^T B f)
+        fx, fy = nex - ex, ney - ey
+        bfx, bfy = b11 * fx + b12 * fy, b21 * fx + b22 * fy
+        den = sx * bfx + sy * bfy
+        if den != 0.0:
+            ux, uy = (sx - bfx) / den, (sy - bfy) / den
+            vx, vy = sx * b11 + sy * b21, sx * b12 + sy * b22
+            b11 += ux * vx
+            b12 += ux * vy
+            b21 += uy * vx
+            b22 += uy * vy
+        x += sx
+        y += sy
+        ex, ey = nex, ney
+        # The next step is known without another trace; once it is below the
+        # tolerance, take it and stop (its own error is far smaller still).
+        sx = -(b11 * ex + b12 * ey)
+        sy = -(b21 * ex + b22 * ey)
+        if abs(sx) < tol_x and abs(sy) < tol_y:
+            x += sx
+            y += sy
+            result = _OK if s > 0.0 else _BEHIND
+            break
+    return x, y, s, result
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _pixel(x, y, result, lens, r2_max, out):
+    """The pixel of a converged aim into ``out`` (2,), NaN unless OK; returns the status
+    (``OUTSIDE_HALF`` beyond the distortion's fold-back radius ``r2_max``)."""
+    if result == _OK:
+        r2 = x * x + y * y
+        if r2 > r2_max:
+            result = _OUTSIDE
+        else:
+            radial = 1.0 + r2 * (lens[4] + r2 * (lens[5] + r2 * lens[8]))
+            xd = x * radial + 2.0 * lens[6] * x * y + lens[7] * (r2 + 2.0 * x * x)
+            yd = y * radial + lens[6] * (r2 + 2.0 * y * y) + 2.0 * lens[7] * x * y
+            out[0] = lens[0] * xd + lens[2]
+            out[1] = lens[1] * yd + lens[3]
+    if result != _OK:
+        out[0] = _NAN
+        out[1] = _NAN
+    return result
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def aim_rays(
     points, faces, n_glass, centre, exponents, coeffs, lut, lut_origin, lut_step,
     start_xy, tol_x, tol_y, max_iter, xy, status, dxy_dp, lens, r2_max, pixels,
@@ -266,60 +335,10 @@ def aim_rays(
         if st != _OK:
             status[i] = st
             continue
-        result = _NOT_CONVERGED
-        sx = -(b11 * ex + b12 * ey)
-        sy = -(b21 * ex + b22 * ey)
-        if abs(sx) < tol_x and abs(sy) < tol_y:  # a warm start already on the point
-            x += sx
-            y += sy
-            result = _OK if s > 0.0 else _BEHIND
-        for _ in range(max_iter if result == _NOT_CONVERGED else 0):
-            nex, ney, s, st = _offset(x + sx, y + sy, faces, n_glass, px, py, pz)
-            h = 0
-            while st != _OK and h < _MAX_HALVINGS:  # keep the ray inside the prism
-                sx *= 0.5
-                sy *= 0.5
-                nex, ney, s, st = _offset(x + sx, y + sy, faces, n_glass, px, py, pz)
-                h += 1
-            if st != _OK:
-                result = st
-                break
-            # good Broyden update of the inverse Jacobian: B += (s - B f) s^T B / (s^T B f)
-            fx, fy = nex - ex, ney - ey
-            bfx, bfy = b11 * fx + b12 * fy, b21 * fx + b22 * fy
-            den = sx * bfx + sy * bfy
-            if den != 0.0:
-                ux, uy = (sx - bfx) / den, (sy - bfy) / den
-                vx, vy = sx * b11 + sy * b21, sx * b12 + sy * b22
-                b11 += ux * vx
-                b12 += ux * vy
-                b21 += uy * vx
-                b22 += uy * vy
-            x += sx
-            y += sy
-            ex, ey = nex, ney
-            # The next step is known without another trace; once it is below the
-            # tolerance, take it and stop (its own error is far smaller still).
-            sx = -(b11 * ex + b12 * ey)
-            sy = -(b21 * ex + b22 * ey)
-            if abs(sx) < tol_x and abs(sy) < tol_y:
-                x += sx
-                y += sy
-                result = _OK if s > 0.0 else _BEHIND
-                break
-        if result == _OK and want_pixels:
-            r2 = x * x + y * y
-            if r2 > r2_max:
-                result = _OUTSIDE
-            else:
-                radial = 1.0 + r2 * (lens[4] + r2 * (lens[5] + r2 * lens[8]))
-                xd = x * radial + 2.0 * lens[6] * x * y + lens[7] * (r2 + 2.0 * x * x)
-                yd = y * radial + lens[6] * (r2 + 2.0 * y * y) + 2.0 * lens[7] * x * y
-                pixels[i, 0] = lens[0] * xd + lens[2]
-                pixels[i, 1] = lens[1] * yd + lens[3]
-        if want_pixels and result != _OK:
-            pixels[i, 0] = _NAN
-            pixels[i, 1] = _NAN
+        x, y, s, result = _broyden(x, y, ex, ey, s, b11, b12, b21, b22, faces, n_glass,
+                                   px, py, pz, tol_x, tol_y, max_iter)  # fmt: skip
+        if want_pixels:
+            result = _pixel(x, y, result, lens, r2_max, pixels[i])
         status[i] = result
         if result == _OK:
             xy[i, 0] = x

@@ -583,7 +583,7 @@ def aim_rays(
     status = np.empty(points.shape[0], dtype=STATUS_DTYPE)
     dxy_dp = np.empty((points.shape[0] if jacobian else 0, 2, 3))
     start = np.empty((0, 2)) if start is None else np.ascontiguousarray(start, dtype=np.float64)
-    q = np.empty((points.shape[0] if pixels else 0, 2))
+    q = np.full((points.shape[0] if pixels else 0, 2), np.nan)  # rows the kernel skips stay NaN
     lens = np.array([model.fx, model.fy, model.cx, model.cy, *model._lens_coeffs()[:4], model.k3])
     r2_max = max_monotonic_radius2(model.k1, model.k2, model.k3)
     _prism_kernels.aim_rays(
