@@ -251,8 +251,8 @@ def _read_seed(path: str | Path | None):
 
 def calibration_order(model: str) -> list[str]:
     """The registered models ``model`` asks for (one, or all for :data:`ALL_MODELS`), in
-    registry order with each model's seed model (``SEEDED_FROM``, when a model class
-    names one) moved before it."""
+    registry order with each model's seed model (``SEEDED_FROM``) moved before it, so
+    that its result can seed the models after it."""
     from endomeasure.models import MODELS
 
     if model != ALL_MODELS:
@@ -263,7 +263,7 @@ def calibration_order(model: str) -> list[str]:
     order: list[str] = []
 
     def visit(name: str, seen: tuple[str, ...] = ()) -> None:
-        seed = getattr(MODELS[name], "SEEDED_FROM", None)
+        seed = MODELS[name].SEEDED_FROM
         if seed in MODELS and seed not in seen and seed not in order:
             visit(seed, (*seen, name))
         if name not in order:
@@ -272,17 +272,6 @@ def calibration_order(model: str) -> list[str]:
     for name in MODELS:
         visit(name)
     return order
-
-
-def _start_for(name: str, results: dict[str, Any]):
-    """The earlier result a model's calibration starts from: its seed model's when the
-    model class names one (``SEEDED_FROM``), else the latest; the solver uses what fits."""
-    from endomeasure.models import MODELS
-
-    seed = getattr(MODELS[name], "SEEDED_FROM", None)
-    if seed is not None:
-        return results.get(seed)
-    return next(reversed(results.values()), None)
 
 
 def calibrate_session(
@@ -330,10 +319,10 @@ def calibrate_session(
     results: dict[str, Any] = {}
     refused: dict[str, str] = {}
     for name in names:
-        start = _start_for(name, results)
         try:
+            # the earlier results: the solver starts from those in the model's seeding chain
             results[name] = calibrate(name, views, boards, image_size, split, options,
-                                      start=start)  # fmt: skip
+                                      start=tuple(results.values()))  # fmt: skip
         except CalibrationError as exc:
             refused[name] = exc.one_line()
     if results:
