@@ -6,10 +6,19 @@ import numpy as np
 
 from endomeasure.geometry.distortion import distort, distort_coeff_jacobian, distort_jacobian
 
-__all__ = ["LENS_NAMES", "lens_pixels_and_jacobians"]
+__all__ = ["LENS_NAMES", "DISTORTION_NAMES", "lens_units", "lens_pixels_and_jacobians"]
 
 LENS_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 """The lens camera's parameters in OpenCV order (the columns of ``dq_dlens``)."""
+DISTORTION_NAMES = LENS_NAMES[4:]
+"""The distortion coefficients in OpenCV order, as :mod:`endomeasure.geometry.distortion`
+takes them."""
+
+
+def lens_units(prefix: str = "") -> dict[str, str]:
+    """Units of the lens parameters (focal lengths and principal point px, coefficients
+    unitless), keyed by ``prefix + name``."""
+    return {prefix + n: "px" if n in LENS_NAMES[:4] else "1" for n in LENS_NAMES}
 
 
 def lens_pixels_and_jacobians(x: np.ndarray, y: np.ndarray, lens) -> tuple[np.ndarray, ...]:

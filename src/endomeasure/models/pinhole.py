@@ -22,7 +22,7 @@ from endomeasure.geometry.distortion import (
 )
 from endomeasure.geometry.rotations import rotation_jacobian, rotation_matrix, skew
 from endomeasure.models.base import CameraModel, ParamBatch
-from endomeasure.models.lens import LENS_NAMES, lens_pixels_and_jacobians
+from endomeasure.models.lens import LENS_NAMES, lens_pixels_and_jacobians, lens_units
 
 __all__ = ["PinholeModel", "project_pinhole", "UNDISTORT_TOL_PX"]
 
@@ -75,11 +75,8 @@ class PinholeModel(CameraModel):
         + ("rx", "ry", "rz", "tx", "ty", "tz")
     )
     PARAM_UNITS: ClassVar[dict[str, str]] = {
-        **{
-            f"{h}_{n}": "px" if n in ("fx", "fy", "cx", "cy") else "1"
-            for h in ("left", "right")
-            for n in _INTRINSICS
-        },
+        **lens_units("left_"),
+        **lens_units("right_"),
         **dict.fromkeys(("rx", "ry", "rz"), "rad"),
         **dict.fromkeys(("tx", "ty", "tz"), "mm"),
     }

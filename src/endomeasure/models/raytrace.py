@@ -33,7 +33,12 @@ from endomeasure.geometry.distortion import (
 )
 from endomeasure.models import _prism_kernels
 from endomeasure.models.base import FD_STEP_PARAM, CameraModel, ParamBatch
-from endomeasure.models.lens import LENS_NAMES, lens_pixels_and_jacobians
+from endomeasure.models.lens import (
+    DISTORTION_NAMES,
+    LENS_NAMES,
+    lens_pixels_and_jacobians,
+    lens_units,
+)
 from endomeasure.models.projector import Projector, _zero_where_lost
 
 __all__ = [
@@ -56,7 +61,6 @@ AIM_TOL_PX = 1e-8
 superlinearly, so the remaining error is far below the 1e-6 px the spec asks."""
 AIM_MAX_ITER = 25
 UNDISTORT_TOL_PX = 1e-10  # px
-_LENS_TERMS = ("k1", "k2", "p1", "p2", "k3")  # distortion coefficients in OpenCV order
 
 
 def plane_normal(a, b) -> np.ndarray:
@@ -214,7 +218,7 @@ class RaytraceModel(CameraModel):
         "right_face": slice(15, 18),
     }
     PARAM_UNITS: ClassVar[dict[str, str]] = {
-        **{n: "px" if n in ("fx", "fy", "cx", "cy") else "1" for n in LENS_NAMES},
+        **lens_units(),
         **{f"{face}_{k}": "mm" if k == "d" else "rad"
            for face in ("rear", "left", "right") for k in "abd"},
         "n_glass": "1",
@@ -247,8 +251,12 @@ class RaytraceModel(CameraModel):
         a, b, d = (getattr(self, f"{name}_{k}") for k in "abd")
         return plane_normal(a, b), d
 
+    def lens(self) -> np.ndarray:
+        """The lens camera ``fx fy cx cy k1 k2 p1 p2 k3`` (:data:`LENS_NAMES` order), (9,)."""
+        return np.array([getattr(self, n) for n in LENS_NAMES])
+
     def _lens_coeffs(self) -> tuple[float, float, float, float, float]:
-        return tuple(getattr(self, k) for k in _LENS_TERMS)
+        return tuple(getattr(self, k) for k in DISTORTION_NAMES)
 
     def faces_array(self, half: Half) -> np.ndarray:
         """Rear and front face of a half packed for the compiled kernels, float64[8]."""
@@ -288,13 +296,13 @@ class RaytraceModel(CameraModel):
 
     def _rays_rows(self, pixels, half, batch):
         """Rays with a parameter vector per pixel (``batch``; index None: its only vector)."""
-        p = {k: batch.per_item(self.index(k)) for k in ("fx", "fy", "cx", "cy", *_LENS_TERMS)}
+        p = {k: batch.per_item(self.index(k)) for k in LENS_NAMES}
         one = batch.table.shape[0] == 1
         r2 = max_monotonic_radius2(*(self.column(batch.table, k) for k in ("k1", "k2", "k3")))
         und = undistort(
             (pixels[:, 0] - p["cx"]) / p["fx"],
             (pixels[:, 1] - p["cy"]) / p["fy"],
-            tuple(p[k] for k in _LENS_TERMS),
+            tuple(p[k] for k in DISTORTION_NAMES),
             UNDISTORT_TOL_PX / np.maximum(p["fx"], p["fy"]),
             r2_max=float(r2[0]) if one else r2[batch.index],
         )
@@ -338,8 +346,7 @@ class RaytraceModel(CameraModel):
         dq_dp = self._point_jacobian(aim)
         good = np.isfinite(aim.x) & np.isfinite(aim.y)
         x, y = np.where(good, aim.x, 0.0), np.where(good, aim.y, 0.0)
-        lens = [getattr(self, n) for n in LENS_NAMES]
-        _, dq_dxy, dq_dlens = lens_pixels_and_jacobians(x, y, lens)
+        _, dq_dxy, dq_dlens = lens_pixels_and_jacobians(x, y, self.lens())
         dq_dparams = np.zeros((points.shape[0], 2, free.size))
         inverse_G_x = aim.dxy_dp[:, :, :2]
         traced = _TRACE_PARAMS[half]
@@ -581,10 +588,10 @@ def aim_rays(
         aim = model.aim_map(half, fine=points.shape[0] >= _FINE_TABLE_MIN_POINTS)
     xy = np.empty((points.shape[0], 2))
     status = np.empty(points.shape[0], dtype=STATUS_DTYPE)
-    dxy_dp = np.empty((points.shape[0] if jacobian else 0, 2, 3))
+    dxy_dp = np.full((points.shape[0] if jacobian else 0, 2, 3), np.nan)
     start = np.empty((0, 2)) if start is None else np.ascontiguousarray(start, dtype=np.float64)
     q = np.full((points.shape[0] if pixels else 0, 2), np.nan)  # rows the kernel skips stay NaN
-    lens = np.array([model.fx, model.fy, model.cx, model.cy, *model._lens_coeffs()[:4], model.k3])
+    lens = model.lens()
     r2_max = max_monotonic_radius2(model.k1, model.k2, model.k3)
     _prism_kernels.aim_rays(
         points, model.faces_array(half), model.n_glass, aim.centre, aim.exponents, aim.coeffs,
