@@ -13,10 +13,10 @@ corner and the markers plus the markers' black border cell, the same in both whi
 squares (:func:`symmetric_radius_squares`); the window's shape comes from the local
 affine map of the detected neighbours (:func:`charuco_local_steps`). It starts from the
 detector's corners; ``cornerSubPix`` (its window inside the gap, 2-3 px) is the
-fallback where it does not converge. On the simulator's ChArUco set
-(``bench/accuracy_charuco.py``, figures in ``docs/accuracy.md``): 0.032 px RMS with the
-default noise, against 0.158 px for ``cornerSubPix`` and 0.187 px for the detector's own
-corners.
+fallback where it does not converge. On the simulator's ChArUco set it is several
+times more accurate than ``cornerSubPix`` and the detector's own corners
+(``bench/accuracy_charuco.py``; figures in ``docs/accuracy.md``, "ChArUco against the
+simulator's truth").
 
 The board layout is OpenCV's current one (``setLegacyPattern(False)``, OpenCV >= 4.6),
 the one ``CharucoBoard.generateImage`` draws.
@@ -49,14 +49,13 @@ __all__ = [
 MIN_CHARUCO_CORNERS = 4
 # cornerSubPix half-window as a fraction of the white gap between a corner and the markers.
 MARKER_GAP_WINDOW_FRACTION = 0.9
-# Refinements, compared by bench/accuracy_charuco.py on the simulator's ChArUco set
-# (2189 corners, default noise; RMS px): opencv 0.187, subpix 0.158, symmetry 0.032.
+# Refinements, compared on the simulator's ChArUco set by bench/accuracy_charuco.py
+# (docs/accuracy.md, "ChArUco against the simulator's truth"); symmetry is the best.
 CHARUCO_REFINEMENTS = ("opencv", "subpix", "symmetry")
 DEFAULT_CHARUCO_REFINEMENT = "symmetry"
 # The symmetric window's cut (2 sigma) as a fraction of the symmetric radius (gap + border
-# cell). Measured (RMS px, default noise / noise-free): 0.6 -> 0.048 / 0.043, 0.8 ->
-# 0.035 / 0.031, 0.9 -> 0.032 / 0.029, 1.0 -> 0.031 / 0.029, 1.2 -> 0.034 / 0.032, 1.5 ->
-# 0.042 / 0.041; 0.9 keeps a margin for the blur of the markers' bits at the far end.
+# cell): near the best of the sweep (bench/accuracy_charuco.py --sweep, docs/accuracy.md),
+# just under 1 to keep a margin for the blur of the markers' bits at the far end.
 SYMMETRY_WINDOW_FRACTION = 0.9
 # The local affine map of a corner is fitted to the detected corners this many columns
 # and rows around it.
@@ -260,8 +259,7 @@ def detect_charuco(
     if refinement == "opencv":
         return CharucoResult(ids, pixels, n_markers, None)
     # The window must stay off the markers, which begin (square - marker) / 2 from the
-    # corner's edges; measured: window at 0.9 of that gap 0.08 px RMS, at half the square
-    # (the chessboard choice) 0.45 px.
+    # corner's edges: the chessboard's half-square window reaches them and fails.
     gap_fraction = (spec.square_mm - spec.marker_mm) / (2.0 * spec.square_mm)
     fraction = min(SUBPIX_WINDOW_FRACTION, MARKER_GAP_WINDOW_FRACTION * gap_fraction)
     halfwindows = _spacing_halfwindow(ids, pixels, spec.cols, fraction)
@@ -271,7 +269,7 @@ def detect_charuco(
         refined[chosen] = refine_corners(gray, pixels[chosen], int(window))
     if refinement == "symmetry":
         # from the detector's corners: cornerSubPix's small window occasionally walks
-        # 1.5-2 px off a corner (measured), beyond the symmetric fit's reach
+        # off a corner by more than the symmetric fit's reach
         symmetric, converged = refine_charuco_symmetric(gray, ids, pixels, spec)
         refined = np.where(converged[:, None], symmetric, refined)
     return CharucoResult(ids, refined, n_markers, None)

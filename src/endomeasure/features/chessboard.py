@@ -22,9 +22,9 @@ candidates stay selectable by name so that the comparison can be re-run:
 ``sb-classic-subpix``
     As ``sb-subpix``, falling back to ``findChessboardCorners`` when the sector-based
     finder finds nothing; refinement as ``sb-subpix``. The sector-based finder is the
-    more robust, ``cornerSubPix`` with a window matched to the square size about 3-4
-    times more accurate than its own sub-pixel fit (with or without
-    ``CALIB_CB_ACCURACY``), but it stays at 0.06-0.08 px on the simulator's renders.
+    more robust, ``cornerSubPix`` with a window matched to the square size several times
+    more accurate than its own sub-pixel fit (with or without ``CALIB_CB_ACCURACY``),
+    but biased by blur, 8-bit edges and perspective.
 ``sb-saddle``
     SB finds, a quadratic surface fitted around each corner refines (its saddle point;
     :func:`endomeasure.features.subpixel.saddle_corners`). Kept for the comparison.
@@ -33,9 +33,9 @@ candidates stay selectable by name so that the comparison can be re-run:
     (:func:`endomeasure.features.subpixel.symmetric_corners`, with a per-corner
     illumination gradient).
 ``sb-classic-symmetry`` (the default)
-    As ``sb-symmetry`` with the ``findChessboardCorners`` fallback finder. The measured
-    winner: 0.030 / 0.032 px RMS on the simulator's noise-free calibration / test sets
-    against 0.077 / 0.064 px for ``cornerSubPix`` (``docs/accuracy.md``).
+    As ``sb-symmetry`` with the ``findChessboardCorners`` fallback finder: the most
+    accurate on the simulator's renders (``docs/accuracy.md``, "Refinement on the
+    simulator's renders").
 
 Canonical ids (so that the same id in both halves is the same physical corner and
 detections match the simulator's truth): OpenCV may return the grid starting at any end
@@ -233,7 +233,7 @@ def refine_symmetric(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
     started = refine_corners(gray, grid.reshape(-1, 2), adaptive_subpix_halfwindow(grid))
     # The grid's local quadratic map bends the symmetric comparison along the grid lines
     # that lens distortion curves (docs/accuracy.md, "Detection": it removes a mirrored
-    # +-0.012-0.020 px u-bias of the two halves).
+    # u-bias of the two halves).
     steps, curvature = local_quadratic(started.reshape(grid.shape))
     result = symmetric_corners(gray, None, started, steps=steps, curvature=curvature)
     return result.pixels

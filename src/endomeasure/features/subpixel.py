@@ -27,9 +27,9 @@ not point-symmetric: to second order the grid maps as ``p(d) = c + A d + s(d)`` 
 ``s(d)`` quadratic, the same for ``d`` and ``-d``. Given the curvature (from
 :func:`local_quadratic`, a quadratic fit to the detected neighbours), the compared pair
 is ``c + h + s(A^-1 h)`` and ``c - h + s(A^-1 h)``: the images of two board points
-symmetric about the corner. On the simulator's sets the plain comparison is pulled
-outwards by 0.012-0.020 px in u (mirrored in the two halves, a -0.19 % scale error after
-calibration); the curvature-aware one has no measurable bias (``docs/accuracy.md``).
+symmetric about the corner. The plain comparison is pulled outwards, mirrored in the two
+halves, which calibration turns into a scale error; the curvature-aware one has no
+measurable bias (``docs/accuracy.md``, "Detection", "Against the simulator").
 
 :func:`saddle_corners` is the classic peer: a quadratic surface fitted to the image in
 the same window, its saddle point the corner (kept selectable for the comparison).
@@ -55,16 +55,13 @@ __all__ = [
     "symmetric_system",
 ]
 
-# Gaussian window sigma in squares. Measured on the simulator's noise-free calibration
-# and test sets (RMS px, `bench/bench_detect.py refinement`): 0.2 -> 0.040 / 0.033,
-# 0.25 -> 0.033 / 0.032, 0.3 -> 0.030 / 0.032, 0.35 -> 0.029 / 0.034. Larger windows
-# average more pixels but feel more of the lens distortion's curvature of the lines.
-# With the curvature-aware pairs (the chessboard default) they no longer do: measured
-# 0.3 -> 0.027 / 0.024, 0.4 -> 0.022 / 0.022, 0.5 -> 0.019 / 0.020 (cached detector
-# starts); the value is not re-chosen yet (such windows reach the next grid lines).
+# Gaussian window sigma in squares, chosen by `bench/bench_detect.py refinement`
+# (docs/accuracy.md, "Refinement on the simulator's renders"). Larger windows average
+# more pixels but, without the curvature-aware pairs, feel more of the distortion's
+# curvature of the lines, and beyond about half a square they reach the next grid lines.
 SYMMETRY_SIGMA_SQUARES = 0.3
-# The saddle fit's window sigma in squares: measured 0.1 -> 0.077 / 0.058 px RMS
-# (noise-free calibration / test sets), 0.15 -> 0.082 / 0.086, 0.2 -> 0.119 / 0.123.
+# The saddle fit's window sigma in squares: the best of the same comparison (a quadratic
+# surface fits only close to the corner).
 SADDLE_SIGMA_SQUARES = 0.1
 # Window cut at this many sigmas: 0.6 squares, inside the four squares around a corner
 # with room for the blur of the next grid lines.

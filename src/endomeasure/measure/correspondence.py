@@ -1,4 +1,4 @@
-"""Automatic correspondence search for operator points (SPEC section 7, issue 9).
+"""Automatic correspondence search for operator points (SPEC section 7).
 
 An operator clicks a point in one half; :func:`find_match` finds the same surface point
 in the other half, or refuses with a reason. It never guesses: a refused point has no
@@ -11,19 +11,18 @@ The search
    0.4 px between samples. Only samples whose whole patch lies inside the other half
    are searched.
 2. **Patch warp.** The two halves see the surface through different prism faces, so
-   the local image scale and shear differ between them (by up to some 20 % for the
-   default biprism, whose halves show opposite keystone distortion). At each curve
+   the local image scale and shear differ between them (the default biprism's halves
+   show opposite keystone distortion). At each curve
    sample the search patch is warped by the local affine map between the halves,
    ``A = dq_other / dq_ref``, for a surface facing the probe (a plane of constant z)
    at that sample's depth: ``A = (d q_other / d p) (d p / d q_ref)``, with the first
    factor from :meth:`CameraModel.project_jacobian` and the second from the rays of the
    neighbouring pixels met on that plane. For the refinement (step 5) the default
    ``warp='plane'`` replaces ``A`` by the exact map of that plane (every patch sample's
-   ray met with it and projected): over a 15 px patch the raytrace map is far enough
-   from affine to bias an affine-warped match by about 0.07 px. ``warp='none'``
-   compares plain square patches, for comparison; on the committed scene images it is
-   2.4x less accurate and accepts a sixth as many random points (see
-   ``docs/benchmarks.md``, section ``correspondence``).
+   ray met with it and projected): over a patch of typical size the raytrace map is far
+   enough from affine to bias an affine-warped match. ``warp='none'`` compares plain
+   square patches, for comparison (what each warp gives: ``docs/benchmarks.md``,
+   section ``correspondence``).
 3. **Correlation.** Normalised cross-correlation (NCC) of the reference patch with the
    warped patch at every sample (bilinear interpolation, no quantisation of sub-pixel
    positions), after removing each patch's mean *and* brightness ramp: vignetting,
@@ -62,9 +61,8 @@ curve). From the patch's derivative along it and the image noise ``sigma`` (esti
 around the point from the median absolute 3x3 Laplacian, Immerkaer's operator) the
 search predicts the standard deviation with which it can place the match along the
 curve (``precision_px``, see :func:`_localisation_precision`); a patch that cannot be
-placed to :data:`MAX_PRECISION_PX` is refused as untextured. Flat patches (and stripes
-running along the curve) predict about 0.5 px or worse, the simulator's textured metal
-about 0.1 px.
+placed to :data:`MAX_PRECISION_PX` is refused as untextured; flat patches and stripes
+running along the curve predict far worse than textured surfaces.
 
 Precision
 ---------
@@ -82,13 +80,10 @@ packed closer than pixels by a compressing warp), ``D = 2.16 /px^2`` the varianc
 derivative of spline-interpolated unit noise and ``m`` the misfit :data:`MISFIT_DN`.
 The first factor is the classic least-squares term. The second is the noise times the
 *noise's own derivative* in the searched patch (the refinement's gradients are those of
-the noisy image): negligible on strong texture, but on the simulator's metal at sensor
-noise (per-sample gradient about equal to the noise) it doubles the variance. Without
-it (and in the reference half's pixels) the precision was about twice too optimistic on
-random surface points of noisy scenes, while the marks were right. With it, on noisy
-renders of scene seeds 0-5, the RMS z-score along the curve is 0.84-1.20 for random
-points and 0.71-0.99 for the marks (``docs/accuracy.md``, "Match precision against the
-simulator's truth", made by ``bench/match_precision.py``).
+the noisy image): negligible on strong texture, but where the per-sample gradient is
+about equal to the noise (weak texture at sensor noise) it is as large as the first.
+How honest the result is against the simulator's truth: ``docs/accuracy.md``, "Match
+precision against the simulator's truth" (``bench/match_precision.py``).
 """
 
 from __future__ import annotations
@@ -132,19 +127,18 @@ __all__ = [
 WARPS = ("plane", "affine", "none")
 
 MIN_SCORE = 0.8
-"""Lowest accepted peak NCC. True matches on the simulator's noisy textured surfaces
-score above 0.9; unrelated patches of smooth random texture reach 0.6-0.7 somewhere
-along a curve of a few hundred samples."""
+"""Lowest accepted peak NCC (after the noise correction, ``signal_score``): between
+the scores of true matches on textured surfaces and the best that an unrelated patch of
+smooth random texture reaches somewhere along a curve of a few hundred samples."""
 MAX_SECOND_RATIO = 0.9
 """Largest accepted ratio of the second-highest peak (outside the main peak's lobe) to
-the highest one. Repeated texture along the curve gives ratios near 1; random texture
-rarely exceeds 0.8 at a true match."""
+the highest one. Repeated texture along the curve gives ratios near 1, random texture
+at a true match clearly less."""
 MAX_PRECISION_PX = 0.15
 """Worst accepted predicted precision (1 sigma) of the match along the curve, px. On a
 flat patch the derivative energy left after subtracting the noise's expectation is a
-fluctuation (plus the error of the noise estimate) that predicts 0.2-0.8 px, so the
-threshold keeps a margin to it; on the simulator's metal texture the accepted points
-predict 0.05-0.15 px, the marks about 0.03 px."""
+fluctuation (plus the error of the noise estimate) that predicts a few tenths of a
+pixel or worse; the threshold keeps a margin below that."""
 BACK_TOLERANCE_PX = 1.0
 """The back search must return within this distance of the original point (or score it
 within ``MAX_SECOND_RATIO`` of its own best) for the match to count as mutual."""
@@ -156,15 +150,11 @@ MISFIT_DN = 1.0
 noise in the reported ``precision_px``. What the two halves show of a surface patch
 differs by more than the search models (interpolation, unmodelled brightness fall-off
 and highlights, the pixels' own sampling), so even on noise-free images the matches
-keep an error the noise term cannot predict: on noise-free renders of the simulator's
-scene set with seeds 1 and 2 (not the committed seed-0 images the acceptance uses) the
-value that gives random surface points an RMS z-score of 1 along the curve is 1.03
-and 0.93 grey levels (marks: 1.7 and 1.4). On noisy images (noise 1-3 grey levels) it
-adds 5-30 % to the noise term. (Fitted with the first-order precision when the term was
-introduced; ``bench/match_precision.py --noise-free`` shows what it gives now.) Kept after
-the simulator's pixel kernel (2026-11-23): on the new noise-free renders of seeds 1-2 it
-gives random points RMS z 0.68-0.72 and marks 1.15-1.36, on the noisy renders of seeds
-0-5 random points 0.84-1.20 and marks 0.71-0.99, which is where it matters."""
+keep an error the noise term cannot predict. The value was fitted on noise-free
+renders of the simulator's scene set (RMS z-score of 1 along the curve); on noisy images
+the noise term dominates. What it gives: ``bench/match_precision.py`` (with
+``--noise-free`` for the noise-free renders), ``docs/accuracy.md``, "Match precision
+against the simulator's truth"."""
 _NOISE_WINDOW_PATCHES = 4
 """Side of the local noise-estimation window, in patch sizes."""
 _REFINE_ITERATIONS = 12
@@ -460,10 +450,7 @@ def _sample_spline(
     on the grid, a ``[1/2, 1/2]`` average midway), so two patches sampled at different
     phases differ by more than a shift and a least-squares fit between them is pulled
     towards whole pixels. The cubic B-spline interpolates with a nearly phase-independent
-    response. Measured when it came in, on noise-free renders of the default scene set
-    without vignetting, specular light, defocus and apex band: the refinement's error on
-    the marks dropped from 0.035 to 0.021 px RMS and on random surface points (median)
-    from 0.055 to 0.038 px; the scene's other photometric effects change it by less.
+    response.
     """
     coeffs, origin = spline_coefficients(grey, positions, cols=cols)
     return spline_sample(coeffs, origin, positions)
@@ -835,10 +822,10 @@ def _patch_warp(model, pixel, half: Half, depth_mm: float, offsets, affine) -> n
     """Offsets of the patch samples in the other half, shape (n, 2), px.
 
     Exact for a surface of constant z at ``depth_mm``: every reference sample's ray is
-    met with that plane and projected. Over a 15 px patch the map between the halves of
-    the raytrace model is far from affine (the affine approximation leaves a bias of
-    about 0.07 px that grows with the square of the patch size); the affine offsets
-    ``A delta`` are the fallback where a sample cannot be projected.
+    met with that plane and projected. Over a patch the map between the halves of the
+    raytrace model is far from affine (the affine approximation leaves a bias that grows
+    with the square of the patch size); the affine offsets ``A delta`` are the fallback
+    where a sample cannot be projected.
     """
     rays = model.rays(pixel + offsets, half)
     t = (depth_mm - rays.origins[:, 2]) / rays.directions[:, 2]
@@ -873,16 +860,12 @@ def _refine(
 
     Notes
     -----
-    On the test renders of tilted planes the shape correction lowers the RMS error from
-    0.064 to 0.056 px (surface tilted by 39 degrees) and from 0.023 to 0.019 px (17
-    degrees); on noise-free simulator scenes from 0.105 to 0.084 px.
-
     Interpolated noise is weaker between pixels (variance 0.57 of the pixels' midway
     between four of them), so the plain sum of squares is smallest where the samples
     fall between pixels, by some ``0.4 n noise^2`` over ``n`` samples: on weak texture
-    this competes with the signal's own curvature (the sum of squared derivatives, a few
-    hundred grey levels^2 on the simulator's metal at noise 2) and pulls the match by up
-    to 0.4 px towards half-pixel positions. Subtracting the expectation removes that pull.
+    this competes with the signal's own curvature (the sum of squared derivatives) and
+    pulls the match towards half-pixel positions. Subtracting the expectation removes
+    that pull.
     """
     n = offsets.shape[0]
     du, dv = offsets[:, 0], offsets[:, 1]
@@ -931,8 +914,7 @@ def _ramp_free(patches: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     ``patches`` (K, n) sampled at ``offsets`` (n, 2), a symmetric grid, so the constant
     and the two ramps are orthogonal and can be removed one after the other. Comparing
     ramp-free patches makes the correlation blind to the different brightness slopes of
-    the two halves (vignetting, the apex band): on noise-free simulator scenes this
-    alone lowers the RMS error of random surface points from 0.79 to 0.10 px.
+    the two halves (vignetting, the apex band).
     """
     out = patches - patches.mean(axis=-1, keepdims=True)
     for axis in range(2):

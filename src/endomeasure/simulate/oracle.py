@@ -7,7 +7,8 @@ quadrants have the same colour, so ``I(c + h) = I(c - h)``. The corner is the po
 interpolation, Gaussian weights). This locator shares nothing with the renderer or with
 OpenCV's detectors, so it tells whether the renderer put each corner where the truth
 says (it measures the renderer, not a detector). Its own floor on ideal, analytically
-rendered affine boards is 0.01-0.03 px RMS (square sizes 8-20 px, blur 0.6-1 px).
+rendered boards and what it finds on the renders: ``docs/simulator.md``, "Accuracy of
+the rendered truth".
 """
 
 from __future__ import annotations

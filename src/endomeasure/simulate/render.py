@@ -17,9 +17,9 @@ Then, in this order:
    separable difference of normal CDFs per axis), a Gaussian PSF whose sigma grows with
    the distance from best focus, per pixel (blend of a few uniformly blurred images),
    each half on its own. (Blurring the pixels' sample means with a sampled Gaussian
-   instead, as before, integrates the PSF with one point per pixel: with sigma 0.55-0.9
-   px that rule errs by a sub-pixel-phase-dependent amount, and chessboard corners whose
-   edges run along the pixel grid, near the image's middle row, moved by 0.02 px RMS.)
+   instead would integrate the PSF with one point per pixel, an error that depends on
+   where an edge falls in its pixel; ``docs/accuracy.md``, "The renderer's pixel
+   kernel".)
 2. vignetting ``cos^e`` of the lens-space field angle;
 3. the dark band the out-of-focus prism apex casts between the halves;
 4. auto-exposure (a percentile of the signal to a fraction of the full well), shot

@@ -68,9 +68,8 @@ DEFAULT_ALPHA = 0.1
 along the columns of ``sqrt(P)``. The variance the UT returns is (see
 :func:`unscented`) ``sum_i Wi [(f+_i - f0)^2 + (f-_i - f0)^2] + (beta - alpha^2) b^2``:
 for a quadratic ``f`` the first sum over-counts the quartic terms by ``(L + lambda) / 4``
-per axis, so a *small* alpha is what makes the scaled UT second-order accurate
-(measured on an 8 mm length at 30 mm: alpha = 0.1 is within 1.5% of Monte Carlo,
-alpha = 1 is 7% high). Not smaller than 0.1: the sigma points then stay at ~0.3 sigma
+per axis, so a *small* alpha is what makes the scaled UT second-order accurate.
+Not smaller than 0.1: the sigma points then stay at ~0.3 sigma
 from the centre, far above the triangulation's ~1e-9 px convergence noise, and the
 centre weight ``1 - 1/alpha^2 = -99`` amplifies no round-off (the textbook 1e-3 gives
 -1e6)."""
@@ -85,9 +84,9 @@ diagonal in the sigma-point basis, and the variance they return is ``J P J^T + b
 tr(HP)^2`` where the truth (Gaussian input, quadratic ``f``) is ``J P J^T + 1/2
 tr((HP)^2)``. The two agree for every ``H`` only if ``HP`` has a single non-zero
 eigenvalue. A polyline of k segments facing the probe curves along k independent depth
-differences and a polygon along its two tilts, so no single beta is right for them: with
-the default preset's optics and detection noise the plain UT over-predicted the std of
-such measurements by 5-60% against Monte Carlo, while the mean was right. Cross points
+differences and a polygon along its two tilts, so no single beta is right for them:
+the plain UT over-predicts the std of such measurements (the mean stays right; the
+figures are in ``docs/accuracy.md``, "UT against Monte Carlo"). Cross points
 (``cross``, :func:`unscented`) remove that error; beta then only acts on the columns
 without them (the calibration parameters)."""
 
