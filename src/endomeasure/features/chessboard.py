@@ -1,7 +1,7 @@
 """Chessboard corners in one half: OpenCV detection, canonical ids, sub-pixel refinement.
 
 The detector and refinement were chosen by measured accuracy against exactly known
-corners (``bench/bench_detect.py --accuracy``; figures in ``docs/accuracy.md``). All
+corners (``bench/bench_detect.py accuracy``; figures in ``docs/accuracy.md``). All
 candidates stay selectable by name so that the comparison can be re-run:
 
 ``sb``
