@@ -22,15 +22,16 @@ whose rays intersect. So the ML problem is
     minimise |q_L - q_L_obs|^2 + |q_R - q_R_obs|^2   subject to   g(q_L, q_R) = 0,
 
 with ``g = (o_L - o_R) . (d_L x d_R)`` the coplanarity of the two rays (zero exactly
-when they meet), and the point is the intersection of the rays of the optimal pixels. Linearising ``g`` at the
-current pixels ``x`` gives the closed-form step (Sampson's correction, iterated)
+when they meet), and the point is the intersection of the rays of the optimal pixels.
+Linearising ``g`` at the current pixels ``x`` gives the closed-form step (Sampson's
+correction, iterated)
 
     x' = x_obs - grad g(x) * (g(x) + grad g(x) . (x_obs - x)) / |grad g(x)|^2
 
 whose fixed points are exactly the Lagrange conditions of the constrained problem,
 i.e. the ML point (not an approximation of it). Each iteration costs one batched
-backward trace of three pixels per half (the pixel and two forward-difference
-neighbours for ``grad g``).
+backward trace per half: of the pixel and, while the ray derivatives are renewed (see
+:data:`JET_REFRESH_PX`), its two forward-difference neighbours for ``grad g``.
 
 Status per point (:class:`~endomeasure.conventions.Status`): a pixel outside its half
 is ``OUTSIDE_HALF``, a NaN pixel ``INVALID_INPUT``, a failed trace the model's code,
