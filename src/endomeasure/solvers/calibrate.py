@@ -236,11 +236,6 @@ class CalibrationResult:
     def named_std(self) -> dict[str, float]:
         return dict(zip(self.free_names, self.std.tolist(), strict=False))
 
-    def covariance_of(self, names: Sequence[str]) -> np.ndarray:
-        """Covariance block of the named free parameters, shape (len(names),) * 2."""
-        idx = [self.free_names.index(n) for n in names]
-        return self.covariance[np.ix_(idx, idx)]
-
     def strongest_correlations(self, count: int = 5) -> list[tuple[str, str, float]]:
         """The ``count`` parameter pairs with the largest |correlation|."""
         c = self.correlation
