@@ -37,22 +37,10 @@ NOISE_PX = 0.1  # per axis, a good sub-pixel corner detector
 # Exact detections: the fit can only be limited by the convergence tolerances and the
 # ray-aiming precision (1e-9 px), so parameters come back to ~1e-9 of their scale.
 EXACT_RMS_PX = 1e-6
-EXACT_TOL = {"px": 1e-5, "rad": 1e-7, "mm": 1e-6, "coeff": 1e-7}
-UNIT = {
-    "fx": "px", "fy": "px", "cx": "px", "cy": "px",
-    "k1": "coeff", "k2": "coeff", "k3": "coeff", "p1": "coeff", "p2": "coeff",
-    "rear_a": "rad", "rear_b": "rad", "left_a": "rad", "left_b": "rad",
-    "right_a": "rad", "right_b": "rad", "rx": "rad", "ry": "rad", "rz": "rad",
-    "rear_d": "mm", "left_d": "mm", "right_d": "mm", "tx": "mm", "ty": "mm", "tz": "mm",
-    "n_glass": "coeff",
-}  # fmt: skip
+EXACT_TOL = {"px": 1e-5, "rad": 1e-7, "mm": 1e-6, "1": 1e-7}
+"""Per parameter unit (the model's ``PARAM_UNITS``)."""
 NOISE_RMS_REL_TOL = 0.10  # the issue's acceptance: residual at the noise floor within 10%
 COVARIANCE_REL_TOL = 0.30  # the issue's acceptance for empirical vs predicted std
-
-
-def unit_of(name: str) -> str:
-    """Unit class of a parameter name (pinhole names carry a half prefix)."""
-    return UNIT[name] if name in UNIT else UNIT[name.split("_", 1)[1]]
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +73,7 @@ def noisy_fits(noisy_set):
 def assert_params_close(fitted, truth_model, names):
     checked = 0
     for name in names:
-        tol = EXACT_TOL[unit_of(name)]
+        tol = EXACT_TOL[fitted.unit(name)]
         assert getattr(fitted, name) == pytest.approx(getattr(truth_model, name), abs=tol), name
         checked += 1
     assert checked >= 10
@@ -122,7 +110,8 @@ def test_pinhole_recovers_a_pinhole_truth(rng):
     assert set(res.free_names) == set(PinholeModel.PARAM_NAMES)
     # k3 and the tangential terms are weakly determined over a 55-degree field: looser
     for name in res.free_names:
-        tol = EXACT_TOL[unit_of(name)] * (100 if name.endswith(("k3", "k2", "p1", "p2")) else 1)
+        weak = name.endswith(("k3", "k2", "p1", "p2"))
+        tol = EXACT_TOL[res.model.unit(name)] * (100 if weak else 1)
         assert getattr(res.model, name) == pytest.approx(getattr(truth, name), abs=tol), name
 
 
