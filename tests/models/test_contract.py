@@ -203,3 +203,19 @@ def test_invalid_parameter_vectors_are_refused_per_pixel(any_model, rng):
     assert np.all(np.isnan(rays.origins[1:3]))
     with pytest.raises(ValueError, match="params must have shape"):
         any_model.rays(q, Half.LEFT, params[:2])
+
+
+def test_every_parameter_has_a_unit(any_model):
+    units = {any_model.unit(name) for name in any_model.PARAM_NAMES}
+    assert units <= {"px", "mm", "rad", "1"}
+    assert len(units) >= 3
+    with pytest.raises(KeyError):
+        any_model.unit("no_such_parameter")
+
+
+def test_the_registered_start_chain_is_complete():
+    from endomeasure.models import model_start
+
+    for name, cls in MODELS.items():
+        assert callable(model_start(name))
+        assert cls.SEEDED_FROM is None or cls.SEEDED_FROM in MODELS
