@@ -192,6 +192,18 @@ def _lens_jacobian(x, y, faces, n_glass, px, py, pz, h, out):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def lens_jacobians(xy, points, faces, n_glass, dxy_dp):
+    """``_lens_jacobian`` at solutions already aimed, ``xy`` (N, 2), into ``dxy_dp``
+    (N, 2, 3); rows with NaN lens coordinates get NaN."""
+    for i in range(points.shape[0]):
+        if math.isfinite(xy[i, 0]) and math.isfinite(xy[i, 1]):
+            _lens_jacobian(xy[i, 0], xy[i, 1], faces, n_glass, points[i, 0], points[i, 1],
+                           points[i, 2], _JACOBIAN_STEP, dxy_dp[i])  # fmt: skip
+        else:
+            dxy_dp[i, :, :] = _NAN
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _broyden(x, y, ex, ey, s, b11, b12, b21, b22, faces, n_glass, px, py, pz, tol_x, tol_y,
              max_iter):  # fmt: skip
     """Broyden's iteration from lens coordinates (x, y) with offset (ex, ey) and inverse

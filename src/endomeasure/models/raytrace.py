@@ -164,18 +164,16 @@ class _AimingProjector(Projector):
     def state(self):
         return self._xy.copy()
 
-    def _aim(self, model, points, half, idx, jacobian=False) -> Aim:
+    def _aim(self, model, points, half, idx) -> Aim:
         try:
             if half not in self._aim_maps:
                 self._aim_maps[half] = model.aim_map(half)
-            return aim_rays(
-                model, points, half, self._aim_maps[half], jacobian, self._xy[idx], pixels=True
-            )
+            return aim_rays(model, points, half, self._aim_maps[half], False, self._xy[idx], True)
         except ValueError:  # a trial model so wild that the half has no valid rays
             n = idx.size
             nan = np.full(n, np.nan)
             status = np.full(n, Status.NOT_CONVERGED, dtype=STATUS_DTYPE)
-            return Aim(nan, nan, status, np.full((n, 2, 3), np.nan), np.full((n, 2), np.nan))
+            return Aim(nan, nan, status, None, np.full((n, 2), np.nan))
 
     def project(self, model, points):
         pixels = np.full((points.shape[0], 2), np.nan)
@@ -192,11 +190,22 @@ class _AimingProjector(Projector):
         for half, idx in self.groups:
             idx = idx[np.isfinite(self._xy[idx, 0])]  # the corners the last projection kept
             if idx.size:
-                aim = self._aim(model, points[idx], half, idx, jacobian=True)  # at the solution
+                aim = _aimed_at(model, self._xy[idx], points[idx], half)
                 dq_dp[idx], dq_dparams[idx] = model._aimed_jacobians(
                     aim, points[idx], half, self.free
                 )
         return _zero_where_lost(dq_dparams, dq_dp)
+
+
+def _aimed_at(model, xy: np.ndarray, points: np.ndarray, half: Half) -> Aim:
+    """The :class:`Aim` of lens coordinates ``xy`` (N, 2) already aimed at ``points``
+    (N, 3), with ``dxy_dp`` from the kernel's implicit-function rule (no re-aiming)."""
+    xy = np.ascontiguousarray(xy, dtype=np.float64)
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    dxy_dp = np.empty((points.shape[0], 2, 3))
+    _prism_kernels.lens_jacobians(xy, points, model.faces_array(half), model.n_glass, dxy_dp)
+    status = np.full(points.shape[0], Status.OK, dtype=STATUS_DTYPE)
+    return Aim(xy[:, 0], xy[:, 1], status, dxy_dp, None)
 
 
 class RaytraceModel(CameraModel):
@@ -348,15 +357,17 @@ class RaytraceModel(CameraModel):
         x, y = np.where(good, aim.x, 0.0), np.where(good, aim.y, 0.0)
         _, dq_dxy, dq_dlens = lens_pixels_and_jacobians(x, y, self.lens())
         dq_dparams = np.zeros((points.shape[0], 2, free.size))
-        inverse_G_x = aim.dxy_dp[:, :, :2]
-        traced = _TRACE_PARAMS[half]
-        for k, i in enumerate(free):
-            name = self.PARAM_NAMES[i]
-            if name in LENS_NAMES:
-                dq_dparams[:, :, k] = dq_dlens[:, :, LENS_NAMES.index(name)]
-            elif name in traced:
-                G_theta = self._miss_derivative(i, x, y, half, points)
-                dq_dparams[:, :, k] = -np.einsum("nij,njk,nk->ni", dq_dxy, inverse_G_x, G_theta)
+        names = [self.PARAM_NAMES[i] for i in free]
+        lens_cols = [k for k, name in enumerate(names) if name in LENS_NAMES]
+        dq_dparams[:, :, lens_cols] = dq_dlens[
+            :, :, [LENS_NAMES.index(names[k]) for k in lens_cols]
+        ]
+        prism_cols = [k for k, name in enumerate(names) if name in _TRACE_PARAMS[half]]
+        if prism_cols:
+            G_theta = np.stack(
+                [self._miss_derivative(free[k], x, y, half, points) for k in prism_cols], axis=-1
+            )  # (N, 2, K)
+            dq_dparams[:, :, prism_cols] = -(dq_dxy @ aim.dxy_dp[:, :, :2]) @ G_theta
         dq_dparams[~good] = np.nan
         return dq_dp, dq_dparams
 
