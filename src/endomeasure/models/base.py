@@ -363,14 +363,7 @@ class CameraModel(abc.ABC):
             Pixels (px) and a status per point; every non-OK point is NaN, so a
             projection is either right or visibly absent.
         """
-        half = Half.parse(half)
-        flat, shape, status = _flat_input(points, 3, "points")
-        pixels = np.full((flat.shape[0], 2), np.nan)
-        todo = _todo(status)
-        if flat[todo].size:
-            pixels[todo], status[todo] = self._project(flat[todo], half)
-        pixels, status = self.valid_projection(pixels, status, half)
-        return Projection(pixels.reshape(*shape, 2), status.reshape(shape))
+        return Projection(*self._forward(points, half, self._project))
 
     def project_jacobian(self, points: np.ndarray, half: Half | str) -> ProjectionJacobian:
         """:meth:`project` and the derivative of each pixel with respect to its point.
@@ -380,18 +373,7 @@ class CameraModel(abc.ABC):
         ProjectionJacobian
             ``dq_dp`` has shape (..., 2, 3), px/mm, NaN where status is not OK.
         """
-        half = Half.parse(half)
-        flat, shape, status = _flat_input(points, 3, "points")
-        pixels = np.full((flat.shape[0], 2), np.nan)
-        dq_dp = np.full((flat.shape[0], 2, 3), np.nan)
-        todo = _todo(status)
-        if flat[todo].size:
-            pixels[todo], status[todo], dq_dp[todo] = self._project_jacobian(flat[todo], half)
-        pixels, status = self.valid_projection(pixels, status, half)
-        dq_dp[status != Status.OK] = np.nan
-        return ProjectionJacobian(
-            pixels.reshape(*shape, 2), status.reshape(shape), dq_dp.reshape(*shape, 2, 3)
-        )
+        return ProjectionJacobian(*self._forward(points, half, self._project_jacobian, (2, 3)))
 
     def project_jacobians(
         self, points: np.ndarray, half: Half | str, free: np.ndarray | None = None
@@ -411,26 +393,34 @@ class CameraModel(abc.ABC):
             ``dq_dparams`` has shape (..., 2, F), px per parameter unit; both Jacobians
             are NaN where status is not OK.
         """
-        half = Half.parse(half)
         free = np.arange(self.params.size) if free is None else np.asarray(free, dtype=np.int64)
+
+        def evaluate(flat, half):
+            return self._project_jacobians(flat, half, free)
+
+        return ProjectionJacobians(*self._forward(points, half, evaluate, (2, 3), (2, free.size)))
+
+    def _forward(self, points, half, evaluate, *extra_shapes: tuple[int, ...]) -> tuple:
+        """``evaluate(flat_points, half) -> (pixels, status, *extras)`` on the finite
+        points of ``points`` (..., 3), then :meth:`valid_projection`; every output NaN
+        where the status is not OK, shaped like the input."""
+        half = Half.parse(half)
         flat, shape, status = _flat_input(points, 3, "points")
         pixels = np.full((flat.shape[0], 2), np.nan)
-        dq_dp = np.full((flat.shape[0], 2, 3), np.nan)
-        dq_dparams = np.full((flat.shape[0], 2, free.size), np.nan)
+        extras = [np.full((flat.shape[0], *e), np.nan) for e in extra_shapes]
         todo = _todo(status)
         if flat[todo].size:
-            pixels[todo], status[todo], dq_dp[todo], dq_dparams[todo] = self._project_jacobians(
-                flat[todo], half, free
-            )
+            pixels[todo], status[todo], *values = evaluate(flat[todo], half)
+            for out, value in zip(extras, values, strict=True):
+                out[todo] = value
         pixels, status = self.valid_projection(pixels, status, half)
         bad = status != Status.OK
-        dq_dp[bad] = np.nan
-        dq_dparams[bad] = np.nan
-        return ProjectionJacobians(
+        for out in extras:
+            out[bad] = np.nan
+        return (
             pixels.reshape(*shape, 2),
             status.reshape(shape),
-            dq_dp.reshape(*shape, 2, 3),
-            dq_dparams.reshape(*shape, 2, free.size),
+            *(out.reshape(*shape, *e) for out, e in zip(extras, extra_shapes, strict=True)),
         )
 
     def valid_projection(
