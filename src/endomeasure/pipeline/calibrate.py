@@ -251,27 +251,17 @@ def _read_seed(path: str | Path | None):
 
 def calibration_order(model: str) -> list[str]:
     """The registered models ``model`` asks for (one, or all for :data:`ALL_MODELS`), in
-    registry order with each model's seed model (``SEEDED_FROM``) moved before it, so
-    that its result can seed the models after it."""
+    registry order, which puts a model's seed model (``SEEDED_FROM``) before it
+    (:func:`~endomeasure.models.register_model` enforces it), so that its result can
+    seed the models after it."""
     from endomeasure.models import MODELS
 
-    if model != ALL_MODELS:
-        if model not in MODELS:
-            choices = ", ".join((*MODELS, ALL_MODELS))
-            raise BadInputError(f"unknown model {model!r}; choose one of {choices}")
-        return [model]
-    order: list[str] = []
-
-    def visit(name: str, seen: tuple[str, ...] = ()) -> None:
-        seed = MODELS[name].SEEDED_FROM
-        if seed in MODELS and seed not in seen and seed not in order:
-            visit(seed, (*seen, name))
-        if name not in order:
-            order.append(name)
-
-    for name in MODELS:
-        visit(name)
-    return order
+    if model == ALL_MODELS:
+        return list(MODELS)
+    if model not in MODELS:
+        choices = ", ".join((*MODELS, ALL_MODELS))
+        raise BadInputError(f"unknown model {model!r}; choose one of {choices}")
+    return [model]
 
 
 def calibrate_session(
