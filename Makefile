@@ -34,7 +34,7 @@ ARGS ?=
 ACCURACY_WORK ?= out/accuracy
 ACCURACY_RUNS := \
 	"bench/accuracy_detect.py" \
-	"bench/accuracy_charuco.py" \
+	"bench/accuracy_charuco.py --sweep" \
 	"bench/accuracy_report.py sample_sessions --test-seeds 1,2,3 --work $(ACCURACY_WORK)" \
 	"bench/corner_precision.py $(ACCURACY_WORK) --twins 8" \
 	"bench/accuracy_scene.py" \
