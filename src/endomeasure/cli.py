@@ -534,7 +534,7 @@ def simulate(
 def calibrate(
     session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],
     model: Annotated[
-        str, typer.Option("--model", help="Camera model: pinhole, raytrace or all.")
+        str, typer.Option("--model", help="A registered camera model, or all.")
     ] = "all",
     glass_index: Annotated[
         float | None,
@@ -545,7 +545,7 @@ def calibrate(
     ] = False,
     seed: Annotated[
         Path | None,
-        typer.Option("--seed", help="JSON raytrace model with nominal design values."),
+        typer.Option("--seed", help="JSON model with nominal design values (seeds its kind)."),
     ] = None,
     plot: Annotated[
         Path | None, typer.Option("--plot", help="Folder for residual plots (PNG).")
@@ -553,15 +553,25 @@ def calibrate(
     json_output: JsonOption = False,
 ) -> None:
     """Fit camera models to the session's detections (both halves, one cost) and store them."""
+    from endomeasure.errors import BadInputError
     from endomeasure.pipeline.calibrate import calibrate_session
 
+    if glass_index is not None and not glass_index > 1.0:
+        raise BadInputError(f"the glass index must exceed 1, not {glass_index}")
     console = _stderr_console()
     with (
         console.status("calibrating", spinner="dots")
         if (console.is_terminal and not json_output)
         else contextlib.nullcontext()
     ):
-        report = calibrate_session(session, model, glass_index, free_index, seed, plot)
+        report = calibrate_session(
+            session,
+            model,
+            values={} if glass_index is None else {"n_glass": glass_index},
+            free=("n_glass",) if free_index else (),
+            seed=seed,
+            plot_dir=plot,
+        )
     if json_output:
         _print_json(report.to_dict())
     else:

@@ -169,3 +169,39 @@ def test_refusal_exits_1_and_stores_nothing(tmp_path):
     assert "too few usable calibration images" in result.stderr
     with open_session(path) as s:
         assert s.model_names() == []
+
+
+def test_a_seed_seeds_only_the_model_of_its_kind(session, tmp_path):
+    from tests.conftest import make_raytrace_model
+
+    copy = tmp_path / "seeded.h5"
+    copy.write_bytes(session.read_bytes())
+    seed = tmp_path / "design.json"
+    seed.write_text(json.dumps(make_raytrace_model().to_dict()))
+    result = runner.invoke(cli.app, ["calibrate", str(copy), "--seed", str(seed), "--json"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.stdout)
+    assert doc["models"]["raytrace"]["start"].startswith("the seed model")
+    assert not doc["models"]["pinhole"]["start"].startswith("the seed model")
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--model", "pinhole", "--glass-index", "1.6"], "has the parameter(s) ['n_glass']"),
+        (["--model", "pinhole", "--free-index"], "has the parameter(s) ['n_glass']"),
+        (["--model", "pinhole", "--seed", "{seed}"], "which is not being calibrated"),
+        (["--glass-index", "0.9"], "must exceed 1"),
+    ],
+)
+def test_options_no_model_to_calibrate_can_take_are_refused(session, tmp_path, args, message):
+    from tests.conftest import make_raytrace_model
+
+    seed = tmp_path / "design.json"
+    seed.write_text(json.dumps(make_raytrace_model().to_dict()))
+    args = [a.format(seed=seed) for a in args]
+    before = session.read_bytes()
+    result = runner.invoke(cli.app, ["calibrate", str(session), *args])
+    assert result.exit_code == 2, result.output
+    assert message in result.stderr
+    assert session.read_bytes() == before

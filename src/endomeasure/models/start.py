@@ -97,9 +97,10 @@ class Start(NamedTuple):
     state: np.ndarray | None = None  # projector warm-start state per observation
 
 
-Refine = Callable[["CameraModel", Observations, np.ndarray, np.ndarray], Fit]
-"""``refine(model, observations, rvecs, tvecs) -> Fit``: the solver's bundle adjustment of
-the model's free parameters and the poses, over all the given observations."""
+Refine = Callable[..., Fit]
+"""``refine(model, observations, rvecs, tvecs, state=None) -> Fit``: the solver's bundle
+adjustment of the model's free parameters and the poses over all the given observations,
+warm-started from a projector ``state`` over the same observations."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -267,8 +268,8 @@ def calibration_order(model: str) -> list[str]:
 def calibrate_session(
     session: str | Path,
     model: str = ALL_MODELS,
-    glass_index: float | None = None,
-    free_index: bool = False,
+    values: Mapping[str, float] | None = None,
+    free: Sequence[str] = (),
     seed: str | Path | None = None,
     plot_dir: str | Path | None = None,
 ) -> CalibrateReport:
@@ -279,12 +280,13 @@ def calibrate_session(
     session : path
     model : str
         A registered model name or ``'all'`` (:func:`calibration_order`).
-    glass_index : float, optional
-        Prism glass index for models with a prism (default N-BK7, 1.5168).
-    free_index : bool
-        Estimate the glass index too.
+    values : mapping of str to float, optional
+        Parameter values to start from (and keep where fixed), e.g. a glass index; each
+        model takes those it has.
+    free : sequence of str
+        Parameters to estimate that the models hold fixed by default.
     seed : path, optional
-        JSON file of a model with nominal design values to start from.
+        JSON file of a model with nominal design values: seeds the model of its kind.
     plot_dir : path, optional
         Where to write residual plots (PNG).
 
@@ -295,23 +297,17 @@ def calibrate_session(
     """
     from endomeasure.io.records import calibration_record
     from endomeasure.io.session import edit_session
-    from endomeasure.solvers.calibrate import CalibrationOptions, calibrate
+    from endomeasure.solvers.calibrate import calibrate
 
     names = calibration_order(model)
-    if glass_index is not None and not glass_index > 1.0:
-        raise BadInputError(f"the glass index must exceed 1, not {glass_index}")
-    options = CalibrationOptions(
-        values={} if glass_index is None else {"n_glass": glass_index},
-        free=frozenset({"n_glass"}) if free_index else frozenset(),
-        seed=_read_seed(seed),
-    )
+    options = _options_per_model(names, dict(values or {}), frozenset(free), _read_seed(seed))
     views, boards, image_size, split = load_calibration_inputs(session)
     results: dict[str, Any] = {}
     refused: dict[str, str] = {}
     for name in names:
         try:
             # the earlier results: the solver starts from those in the model's seeding chain
-            results[name] = calibrate(name, views, boards, image_size, split, options,
+            results[name] = calibrate(name, views, boards, image_size, split, options[name],
                                       start=tuple(results.values()))  # fmt: skip
         except CalibrationError as exc:
             refused[name] = exc.one_line()
@@ -325,6 +321,35 @@ def calibrate_session(
         summaries[name] = _summary(res, plots)
     return CalibrateReport(str(session), tuple(image_size), int(split), len(views),
                            summaries, refused)  # fmt: skip
+
+
+def _options_per_model(names, values: dict, free: frozenset, seed) -> dict:
+    """Each model's CalibrationOptions: the values and freed parameters it has, and the
+    seed if it is of its kind; BadInputError for what applies to none of them."""
+    from endomeasure.models import MODELS
+    from endomeasure.solvers.calibrate import CalibrationOptions
+
+    known = {p for name in names for p in MODELS[name].PARAM_NAMES}
+    unused = sorted((set(values) | free) - known)
+    if unused:
+        raise BadInputError(
+            f"no model to calibrate ({', '.join(names)}) has the parameter(s) {unused}",
+            hint="choose the model with --model",
+        )
+    if seed is not None and seed.get("model") not in names:
+        raise BadInputError(
+            f"the seed describes a {seed.get('model')!r} model, which is not being calibrated",
+            hint=f"calibrate it with --model {seed.get('model')} or --model all",
+        )
+    options = {}
+    for name in names:
+        params = set(MODELS[name].PARAM_NAMES)
+        options[name] = CalibrationOptions(
+            values={k: v for k, v in values.items() if k in params},
+            free=free & params,
+            seed=seed if seed is not None and seed.get("model") == name else None,
+        )
+    return options
 
 
 def export_session_model(session: str | Path, name: str, fmt: str, out: str | Path) -> Path:

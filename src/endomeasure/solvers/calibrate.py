@@ -29,7 +29,13 @@ from endomeasure.errors import BadInputError, CalibrationError
 from endomeasure.geometry.rotations import rotation_matrix
 from endomeasure.models import CameraModel, ModelConfig, model_class, model_start
 from endomeasure.models.start import Observations, Start, StartContext
-from endomeasure.solvers.bundle import OUTLIER_FLOOR_PX, BundleProblem, fit_with_outliers, refine
+from endomeasure.solvers.bundle import (
+    OUTLIER_FLOOR_PX,
+    BundleProblem,
+    all_residuals,
+    fit_with_outliers,
+    refine,
+)
 from endomeasure.solvers.covariance import marginal_covariance
 
 __all__ = [
@@ -524,7 +530,7 @@ def calibrate(
     _check_amount(obs)
     _check_parallel(obs, config.image_size, config.split)
     starts = [start] if isinstance(start, CalibrationResult) else list(start or ())
-    given = {r.model_name: r for r in starts if r.image_names == obs.image_names}
+    given = {r.model_name: r for r in starts if _same_images(r, obs, config)}
     chain = _Chain(obs, config, options, given)
     if cls.NAME in given:
         # warm start: re-calibration of the same images (e.g. with new detections)
@@ -547,11 +553,21 @@ def calibrate(
     return _finish(fitted, obs, chain.nfev + fitted.nfev, first.origin)
 
 
+def _same_images(result: CalibrationResult, obs: Observations, config: ModelConfig) -> bool:
+    """Whether an earlier result calibrated the same images on the same sensor geometry."""
+    other = result.model.config
+    return result.image_names == obs.image_names and (other.image_size, other.split) == (
+        config.image_size,
+        config.split,
+    )
+
+
 def _fixed_parameters(cls: type[CameraModel], options: CalibrationOptions) -> frozenset[str]:
     fixed = set(cls.DEFAULT_FIXED if options.fixed is None else options.fixed)
-    unknown = fixed - set(cls.PARAM_NAMES)
-    if unknown:
-        raise BadInputError(f"unknown parameter(s) to fix for {cls.NAME}: {sorted(unknown)}")
+    for what, names in (("fix", fixed), ("free", options.free), ("set", options.values)):
+        unknown = set(names) - set(cls.PARAM_NAMES)
+        if unknown:
+            raise BadInputError(f"unknown parameter(s) to {what} for {cls.NAME}: {sorted(unknown)}")
     return frozenset(fixed - set(options.free))
 
 
@@ -579,24 +595,32 @@ class _Chain:
         self.obs, self.config, self.options, self.given = obs, config, options, given
         self.nfev = 0  # residual evaluations spent on starts
 
-    def refine(self, model, obs, rvecs, tvecs):
+    def refine(self, model, obs, rvecs, tvecs, state=None):
         """The bundle adjustment an initialiser may call (:class:`StartContext`)."""
         use = np.ones(obs.image.size, dtype=bool)
-        fit = refine(model, obs, rvecs, tvecs, use, self.options.max_nfev)
+        fit = refine(model, obs, rvecs, tvecs, use, self.options.max_nfev, state)
         self.nfev += fit.nfev
         return fit
+
+    def _check(self, fit) -> None:
+        """:func:`_check_fit` on a fit of every corner that starts another one."""
+        residuals = all_residuals(fit.model, self.obs, fit.rvecs, fit.tvecs, fit.state)
+        _check_fit(fit, residuals, "the start of the")
 
     def start_of(self, cls: type[CameraModel], config: ModelConfig, seed=None) -> Start:
         base = None if cls.SEEDED_FROM is None else self.refined(model_class(cls.SEEDED_FROM))
         ctx = StartContext(self.obs, config, dict(self.options.values), seed, self.refine)
         start = model_start(cls.NAME)(ctx, base)
-        model = start.model.with_values(ctx.values)
         if base is None:
             # a start from the detections alone is rough: check the geometry it shows,
-            # and make one joint pass before anything else sees it
+            # and make one joint pass, from the user's values, before anything else sees it
             _check_distances(self.obs, start.rvecs, start.tvecs)
-            fit = self.refine(model, self.obs, start.rvecs, start.tvecs)
+            fit = self.refine(start.model.with_values(ctx.values), self.obs, start.rvecs,
+                              start.tvecs)  # fmt: skip
+            self._check(fit)
             return Start(fit.model, fit.rvecs, fit.tvecs, start.origin, state=fit.state)
+        # a fixed value must hold whatever the seeding did; a free one was only its start
+        model = start.model.with_values({k: v for k, v in ctx.values.items() if k in config.fixed})
         return start._replace(model=model, origin=f"{start.origin}, via {base.origin}")
 
     def refined(self, cls: type[CameraModel]) -> Start:
@@ -609,32 +633,42 @@ class _Chain:
         start = self.start_of(cls, self.config.with_fixed(cls.DEFAULT_FIXED))
         if cls.SEEDED_FROM is None:
             return start  # already refined once
-        fit = self.refine(start.model, self.obs, start.rvecs, start.tvecs)
+        fit = self.refine(start.model, self.obs, start.rvecs, start.tvecs, start.state)
+        self._check(fit)
         return Start(fit.model, fit.rvecs, fit.tvecs, start.origin, state=fit.state)
+
+
+def _check_fit(fit, inl: np.ndarray, what: str = "the") -> None:
+    """Refuse a fit that did not converge: the optimiser's status, corners ``inl`` (the
+    residuals of the fitted corners, (M, 2) px) that cannot be projected, an RMS that no
+    detection noise explains."""
+    name = fit.model.NAME
+    if fit.status <= 0:
+        raise CalibrationError(
+            f"{what} {name} calibration did not converge ({fit.message.strip()})",
+            hint="check the detections, or add images at more distances and tilts",
+        )
+    if not np.all(np.isfinite(inl)):
+        raise CalibrationError(
+            f"{what} {name} calibration did not converge: "
+            f"{int((~np.isfinite(inl)).any(-1).sum())} corners cannot be projected through "
+            "the fitted model",
+            hint="check the split column and the detections",
+        )
+    rms = float(np.sqrt(np.mean(np.sum(inl * inl, axis=-1))))
+    if rms > CONVERGED_RMS_LIMIT_PX:
+        raise CalibrationError(
+            f"{what} {name} calibration did not converge: RMS residual {rms:.1f} px",
+            hint="check the detections (corner ids must match between halves) and the split",
+        )
 
 
 def _finish(fitted, obs: Observations, nfev: int, origin: str) -> CalibrationResult:
     fit, residuals, use = fitted.fit, fitted.residuals, fitted.inliers
     model = fit.model
     name = model.NAME
-    if fit.status <= 0:
-        raise CalibrationError(
-            f"the {name} calibration did not converge ({fit.message.strip()})",
-            hint="check the detections, or add images at more distances and tilts",
-        )
     inl = residuals[use]
-    if not np.all(np.isfinite(inl)):
-        raise CalibrationError(
-            f"the {name} calibration did not converge: {int((~np.isfinite(inl)).any(-1).sum())} "
-            "corners cannot be projected through the fitted model",
-            hint="check the split column and the detections",
-        )
-    rms = float(np.sqrt(np.mean(np.sum(inl * inl, axis=-1))))
-    if rms > CONVERGED_RMS_LIMIT_PX:
-        raise CalibrationError(
-            f"the {name} calibration did not converge: RMS residual {rms:.1f} px",
-            hint="check the detections (corner ids must match between halves) and the split",
-        )
+    _check_fit(fit, inl)
     problem = BundleProblem(model, obs, use, fit.state)
     x = problem.pack(model, fit.rvecs, fit.tvecs)
     dof = problem.m - problem.n
