@@ -148,7 +148,7 @@ def test_export_yaml_of_raytrace_is_refused(calibrated, session, tmp_path):
          "--format", "opencv-yaml"],
     )  # fmt: skip
     assert result.exit_code == 2
-    assert "only pinhole" in result.stderr
+    assert "no OpenCV stereo equivalent" in result.stderr
 
 
 def test_refusal_exits_1_and_stores_nothing(tmp_path):

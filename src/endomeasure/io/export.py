@@ -78,9 +78,11 @@ def export_model(model, fmt: str, out: str | Path, extras: dict[str, Any] | None
         text = json.dumps(model_document(model, extras), indent=2) + "\n"
         _atomic_write(out, lambda p: p.write_text(text))
         return out
-    if model.NAME != "pinhole":
+    stereo = model.opencv_stereo()
+    if stereo is None:
         raise BadInputError(
-            f"the {model.NAME} model has no OpenCV equivalent; only pinhole exports to opencv-yaml",
+            f"the {model.NAME} model has no OpenCV stereo equivalent (two pinhole cameras "
+            "with Brown distortion)",
             hint="export it as json",
         )
     import cv2
@@ -89,13 +91,10 @@ def export_model(model, fmt: str, out: str | Path, extras: dict[str, Any] | None
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
         if not fs.isOpened():
             raise BadInputError("cannot write the YAML file", path=str(out))
-        R, t = model.pose_right_left()
-        for tag, half in (("1", "left"), ("2", "right")):
-            fx, fy, cx, cy, k1, k2, p1, p2, k3 = model.intrinsics(half)
-            fs.write(f"M{tag}", np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
-            fs.write(f"D{tag}", np.array([[k1, k2, p1, p2, k3]]))
-        fs.write("R", R)
-        fs.write("T", t.reshape(3, 1))
+        for tag in ("M1", "D1", "M2", "D2", "R"):
+            value = getattr(stereo, tag)
+            fs.write(tag, value.reshape(1, -1) if value.ndim == 1 else value)
+        fs.write("T", stereo.T.reshape(3, 1))
         fs.write("image_width", int(model.config.image_size[0]))
         fs.write("image_height", int(model.config.image_size[1]))
         fs.write("split", int(model.config.split))

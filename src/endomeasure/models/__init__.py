@@ -1,6 +1,14 @@
 """Camera models of the split-sensor probe: the contract, the two models, the registry."""
 
-from endomeasure.models.base import CameraModel, ModelConfig, Projection, ProjectionJacobian, Rays
+from endomeasure.models.base import (
+    CameraModel,
+    ModelConfig,
+    OpenCVStereo,
+    Projection,
+    ProjectionJacobian,
+    ProjectionJacobians,
+    Rays,
+)
 from endomeasure.models.pinhole import PinholeModel
 from endomeasure.models.raytrace import RaytraceModel
 from endomeasure.models.registry import (
@@ -15,8 +23,10 @@ from endomeasure.models.registry import (
 __all__ = [
     "CameraModel",
     "ModelConfig",
+    "OpenCVStereo",
     "Projection",
     "ProjectionJacobian",
+    "ProjectionJacobians",
     "Rays",
     "PinholeModel",
     "RaytraceModel",

@@ -40,6 +40,7 @@ __all__ = [
     "Projection",
     "ProjectionJacobian",
     "ProjectionJacobians",
+    "OpenCVStereo",
     "Rays",
     "FD_STEP_PARAM",
 ]
@@ -72,6 +73,17 @@ class ProjectionJacobians(NamedTuple):
     status: np.ndarray  # (...,) uint8 Status
     dq_dp: np.ndarray  # (..., 2, 3) px/mm, NaN where status != OK
     dq_dparams: np.ndarray  # (..., 2, F) px per parameter unit, NaN where status != OK
+
+
+class OpenCVStereo(NamedTuple):
+    """A model as OpenCV's stereo pair (``cv2.stereoCalibrate`` conventions)."""
+
+    M1: np.ndarray  # (3, 3) left camera matrix, full-image pixels
+    D1: np.ndarray  # (5,) k1 k2 p1 p2 k3
+    M2: np.ndarray  # (3, 3) right camera matrix
+    D2: np.ndarray  # (5,)
+    R: np.ndarray  # (3, 3) T_right_left rotation
+    T: np.ndarray  # (3,) mm
 
 
 class ParamBatch(NamedTuple):
@@ -439,6 +451,10 @@ class CameraModel(abc.ABC):
         status[ok & ~inside] = Status.OUTSIDE_HALF
         pixels[status != Status.OK] = np.nan
         return pixels, status
+
+    def opencv_stereo(self) -> OpenCVStereo | None:
+        """The model as OpenCV's stereo pair, or None when it has no such equivalent."""
+        return None
 
     def projector(self, halves: np.ndarray, state: np.ndarray | None = None) -> Projector:
         """The solver-side projector of this model kind over observations in ``halves``

@@ -21,7 +21,7 @@ from endomeasure.geometry.distortion import (
     undistort,
 )
 from endomeasure.geometry.rotations import rotation_jacobian, rotation_matrix, skew
-from endomeasure.models.base import CameraModel, ParamBatch
+from endomeasure.models.base import CameraModel, OpenCVStereo, ParamBatch
 from endomeasure.models.lens import LENS_NAMES, lens_pixels_and_jacobians, lens_units
 
 __all__ = ["PinholeModel", "project_pinhole", "UNDISTORT_TOL_PX"]
@@ -98,6 +98,18 @@ class PinholeModel(CameraModel):
     def pose_right_left(self) -> tuple[np.ndarray, np.ndarray]:
         """``(R, t)`` of ``T_right_left``: ``p_right = R p_left + t``."""
         return rotation_matrix(self.rvec_right_left), np.array(self.t_right_left)
+
+    def opencv_stereo(self) -> OpenCVStereo:
+        """The pair as ``cv2.stereoCalibrate`` gives it (the same conventions)."""
+
+        def matrix(half):
+            fx, fy, cx, cy = self.intrinsics(half)[:4]
+            return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+        R, t = self.pose_right_left()
+        return OpenCVStereo(
+            matrix(Half.LEFT), self.left[4:].copy(), matrix(Half.RIGHT), self.right[4:].copy(), R, t
+        )
 
     def _to_camera(self, points: np.ndarray, half: Half) -> np.ndarray:
         if half is Half.LEFT:
