@@ -43,12 +43,16 @@ __all__ = [
     "OpenCVStereo",
     "Rays",
     "FD_STEP_PARAM",
+    "FD_STEP_POINT",
+    "finite_difference",
 ]
 
 FD_STEP_PARAM = 1e-6
 """Relative central-difference step for model parameters (times ``max(1, |value|)``):
 truncation error ~h^2 times the third derivative, rounding ~eps/h, both ~1e-10
 relative, far below what a covariance needs."""
+FD_STEP_POINT = 1e-6
+"""The same relative step for point coordinates (times ``max(1, |coordinate|)``, mm)."""
 
 
 class Rays(NamedTuple):
@@ -465,7 +469,7 @@ class CameraModel(abc.ABC):
         """Default: central differences of :meth:`_project`; models override it with
         closed forms. Returns pixels (N, 2), status (N,), dq_dp (N, 2, 3)."""
         pixels, status = self._project(points, half)
-        step = 1e-6 * np.maximum(1.0, np.abs(points))
+        step = FD_STEP_POINT * np.maximum(1.0, np.abs(points))
         dq_dp = np.empty((points.shape[0], 2, 3))
         for axis in range(3):
             offset = np.zeros_like(points)
@@ -473,7 +477,7 @@ class CameraModel(abc.ABC):
             plus, st_p = self._project(points + offset, half)
             minus, st_m = self._project(points - offset, half)
             dq_dp[:, :, axis] = (plus - minus) / (2.0 * step[:, axis, None])
-            status = np.where((status == Status.OK) & ((st_p != 0) | (st_m != 0)),
+            status = np.where((status == Status.OK) & ((st_p != Status.OK) | (st_m != Status.OK)),
                               Status.NOT_CONVERGED, status)  # fmt: skip
         return pixels, status, dq_dp
 
@@ -486,12 +490,7 @@ class CameraModel(abc.ABC):
         for k, i in enumerate(free):
             step = FD_STEP_PARAM * max(1.0, abs(float(self.params[i])))
             plus, minus = (self._stepped_pixels(points, half, i, sign * step) for sign in (1, -1))
-            if plus is not None and minus is not None:
-                dq_dparams[:, :, k] = (plus - minus) / (2.0 * step)
-            elif plus is not None:
-                dq_dparams[:, :, k] = (plus - pixels) / step
-            else:
-                dq_dparams[:, :, k] = (pixels - minus) / step
+            dq_dparams[:, :, k] = finite_difference(plus, pixels, minus, step)
         return pixels, status, dq_dp, dq_dparams
 
     def _stepped_pixels(self, points, half, i: int, step: float) -> np.ndarray | None:
@@ -525,7 +524,21 @@ class CameraModel(abc.ABC):
 
     @abc.abstractmethod
     def _project(self, points: np.ndarray, half: Half) -> tuple[np.ndarray, np.ndarray]:
-        """Pixels of finite points, shape (N, 3) -> (N, 2), (N,); half check is done here."""
+        """Pixels of finite points, shape (N, 3) -> (N, 2), (N,), with the model's own
+        failures as status (behind, fold-back, lost in the prism, no convergence); the
+        half rule is :meth:`valid_projection`'s."""
+
+
+def finite_difference(plus, centre, minus, step: float):
+    """Central difference of values at ``+-step`` (one-sided where a side is None: it left
+    the valid domain; NaN where both did)."""
+    if plus is not None and minus is not None:
+        return (plus - minus) / (2.0 * step)
+    if plus is not None:
+        return (plus - centre) / step
+    if minus is not None:
+        return (centre - minus) / step
+    return np.full_like(centre, np.nan)
 
 
 def _todo(status: np.ndarray):

@@ -21,7 +21,7 @@ from endomeasure.conventions import Half
 if TYPE_CHECKING:
     from endomeasure.models.base import CameraModel
 
-__all__ = ["Projector"]
+__all__ = ["Projector", "zero_lost_rows"]
 
 
 class Projector:
@@ -87,10 +87,10 @@ class Projector:
         for half, idx in self.groups:
             jac = model.project_jacobians(points[idx], half, self.free)
             dq_dparams[idx], dq_dp[idx] = jac.dq_dparams, jac.dq_dp
-        return _zero_where_lost(dq_dparams, dq_dp)
+        return zero_lost_rows(dq_dparams, dq_dp)
 
 
-def _zero_where_lost(dq_dparams: np.ndarray, dq_dp: np.ndarray):
+def zero_lost_rows(dq_dparams: np.ndarray, dq_dp: np.ndarray):
     """Both Jacobians with the rows zeroed where either is not finite."""
     lost = ~(np.isfinite(dq_dparams).all(axis=(1, 2)) & np.isfinite(dq_dp).all(axis=(1, 2)))
     dq_dparams[lost] = 0.0

@@ -32,14 +32,14 @@ from endomeasure.geometry.distortion import (
     undistort,
 )
 from endomeasure.models import _prism_kernels
-from endomeasure.models.base import FD_STEP_PARAM, CameraModel, ParamBatch
+from endomeasure.models.base import FD_STEP_PARAM, CameraModel, ParamBatch, finite_difference
 from endomeasure.models.lens import (
     DISTORTION_NAMES,
     LENS_NAMES,
     lens_pixels_and_jacobians,
     lens_units,
 )
-from endomeasure.models.projector import Projector, _zero_where_lost
+from endomeasure.models.projector import Projector, zero_lost_rows
 
 __all__ = [
     "RaytraceModel",
@@ -168,7 +168,8 @@ class _AimingProjector(Projector):
         try:
             if half not in self._aim_maps:
                 self._aim_maps[half] = model.aim_map(half)
-            return aim_rays(model, points, half, self._aim_maps[half], False, self._xy[idx], True)
+            aim = self._aim_maps[half]
+            return aim_rays(model, points, half, aim=aim, start=self._xy[idx], pixels=True)
         except ValueError:  # a trial model so wild that the half has no valid rays
             n = idx.size
             nan = np.full(n, np.nan)
@@ -194,7 +195,7 @@ class _AimingProjector(Projector):
                 dq_dp[idx], dq_dparams[idx] = model._aimed_jacobians(
                     aim, points[idx], half, self.free
                 )
-        return _zero_where_lost(dq_dparams, dq_dp)
+        return zero_lost_rows(dq_dparams, dq_dp)
 
 
 def _aimed_at(model, xy: np.ndarray, points: np.ndarray, half: Half) -> Aim:
@@ -220,8 +221,7 @@ class RaytraceModel(CameraModel):
         "n_glass",
     )  # fmt: skip
     GROUPS: ClassVar[dict[str, slice]] = {
-        "camera": slice(0, 9),
-        "distortion": slice(4, 9),
+        # no "distortion" group: k3 sits before p1 p2 here, not in OpenCV's order
         "rear_face": slice(9, 12),
         "left_face": slice(12, 15),
         "right_face": slice(15, 18),
@@ -393,10 +393,10 @@ class RaytraceModel(CameraModel):
             except ValueError:
                 sides.append(None)
         plus, minus = sides
-        if plus is not None and minus is not None:
-            return (plus - minus) / (2.0 * step)
-        centre = self._miss(x, y, half, points)[0]
-        return (plus - centre) / step if plus is not None else (centre - minus) / step
+        centre = (
+            None if plus is not None and minus is not None else self._miss(x, y, half, points)[0]
+        )
+        return finite_difference(plus, centre, minus, step)
 
     def with_params(self, params: np.ndarray) -> RaytraceModel:
         """A new model with other parameters.
@@ -417,7 +417,7 @@ class RaytraceModel(CameraModel):
     def aim_map(self, half: Half, fine: bool = False) -> _AimMap:
         """The cached ray-aiming start data of a half (polynomial and table).
 
-        ``fine`` selects the fine table, worth its building time (~0.15 s) only for
+        ``fine`` selects the fine table, worth its building time only for
         large batches of points; see ``_LUT_STEP_W``.
         """
         half = Half.parse(half)
@@ -506,12 +506,13 @@ def _fit_aim_map(model: RaytraceModel, half: Half, step: float) -> _AimMap:
 
 
 _LUT_STEP_W = 0.05
-"""Table spacing in virtual-camera tangent units (about 15 px at f = 300 px): builds in
-~20 ms, cheap enough for every new model an optimiser makes."""
+"""Table spacing in virtual-camera tangent units (about 15 px at f = 300 px): cheap
+enough to build for every new model an optimiser makes (build times in
+docs/benchmarks.md, ``bench/bench_models.py``)."""
 _LUT_FINE_STEP_W = 0.015
 """The fine table for large batches (``_FINE_TABLE_MIN_POINTS``): its closer start saves
-traces (0.05 gave 0.89 of cv2.projectPoints' speed on a million points, 0.015 gives
-1.04) but it takes ~0.15 s and ~2 MB per half to build (docs/benchmarks.md)."""
+traces, worth its longer building time and memory only for many points (both tables'
+build times and the projection speed in docs/benchmarks.md, ``bench/bench_models.py``)."""
 _FINE_TABLE_MIN_POINTS = 200_000
 _LUT_DEPTHS_MM = (4.0, 1000.0)  # nearest and farthest slice of the table, from the centre C
 _LUT_SLICES = 10

@@ -76,6 +76,7 @@ class BundleProblem:
         )
         self._cols = np.repeat(cols, 2, axis=0).reshape(-1)
         self._indptr = np.arange(0, 2 * M * (self.F + 6) + 1, self.F + 6)
+        self._last = None  # (x, model, rvecs, points) of the last valid residuals
 
     def pack(self, model, rvecs, tvecs) -> np.ndarray:
         poses = np.concatenate([rvecs[self.images], tvecs[self.images]], axis=1)
@@ -92,45 +93,49 @@ class BundleProblem:
         return np.einsum("nij,nj->ni", R, self.X) + tv[self.pose_of_obs]
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
+        self._last = None
         try:
             model, rv, tv = self.unpack(x)
+            P = self.points(rv, tv)
+            q, ok = self.projector.project(model, P)
         except ValueError:
             # a trial step outside the model's valid domain (a face behind the lens, a
             # negative focal length): a large constant cost makes the solver reject it
             return np.full(self.m, INVALID_MODEL_RESIDUAL_PX)
-        P = self.points(rv, tv)
-        q, ok = self.projector.project(model, P)
         r = q - self.q
         r[~ok] = FAILED_RESIDUAL_PX
         self._last = (x.copy(), model, rv, P)
         return r.reshape(-1)
 
     def jacobian_blocks(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per-observation Jacobians: parameters (M, 2, F) and own pose (M, 2, 6)."""
-        if not (hasattr(self, "_last") and np.array_equal(self._last[0], x)):
+        """Per-observation Jacobians: parameters (M, 2, F) and own pose (M, 2, 6); zero
+        outside the model's valid domain (where the cost is constant)."""
+        if not (self._last is not None and np.array_equal(self._last[0], x)):
             self.residuals(x)
+        if self._last is None:
+            return np.zeros((self.rows.size, 2, self.F)), np.zeros((self.rows.size, 2, 6))
         _, model, rv, P = self._last
         # a corner whose derivative cannot be traced (at the edge of total internal
         # reflection) comes back zero: it contributes nothing to the step
-        dq_dp, dq_dP = self.projector.jacobian(model, P)
+        dq_dparams, dq_dp = self.projector.jacobian(model, P)
         # d P / d(rvec, t) = [-[R X]_x J_l(rvec), I]
         RX = P - x[self.F :].reshape(-1, 6)[self.pose_of_obs, 3:]
         dP_drv = -skew(RX) @ rotation_jacobian(rv)[self.pose_of_obs]
-        return dq_dp, np.concatenate([dq_dP @ dP_drv, dq_dP], axis=-1)
+        return dq_dparams, np.concatenate([dq_dp @ dP_drv, dq_dp], axis=-1)
 
     def jacobian(self, x: np.ndarray):
         """Sparse residual Jacobian, shape (m, n): each row pair has F + 6 entries."""
         import scipy.sparse as sp
 
-        dq_dp, dq_dpose = self.jacobian_blocks(x)
-        blocks = np.concatenate([dq_dp, dq_dpose], axis=-1)  # (M, 2, F + 6)
+        dq_dparams, dq_dpose = self.jacobian_blocks(x)
+        blocks = np.concatenate([dq_dparams, dq_dpose], axis=-1)  # (M, 2, F + 6)
         return sp.csr_matrix((blocks.reshape(-1), self._cols, self._indptr), shape=(self.m, self.n))
 
     def blocks(self, x: np.ndarray):
         """Row-wise parameter and pose Jacobians for the covariance: (m, F), (m, 6), pose of row."""
-        dq_dp, dq_dpose = self.jacobian_blocks(x)
+        dq_dparams, dq_dpose = self.jacobian_blocks(x)
         return (
-            dq_dp.reshape(self.m, self.F),
+            dq_dparams.reshape(self.m, self.F),
             dq_dpose.reshape(self.m, 6),
             np.repeat(self.pose_of_obs, 2),
         )
@@ -150,11 +155,11 @@ def _least_squares(problem: BundleProblem, x0: np.ndarray, max_nfev: int):
     by ``D = diag(N0)^-1/2`` and factored ``D N0 D = L L^T``, the solver works on
     ``z`` with ``x = x0 + D L^-T z``. Near the start the Jacobian in ``z`` is
     orthonormal, so each LSMR step solve takes a handful of iterations instead of
-    hundreds (the pinhole's distortion terms are correlated beyond 0.99).
+    hundreds (distortion terms are strongly correlated).
 
-    MINPACK's Levenberg-Marquardt was tried and rejected: a trial step that loses a few
-    corners (a ray at the edge of total internal reflection) makes it shrink its step
-    until ``xtol`` stops it far from the minimum; the trust-region solver recovers.
+    Why not MINPACK's Levenberg-Marquardt: a trial step that loses a few corners (a ray
+    at the edge of total internal reflection) makes it shrink its step until ``xtol``
+    stops it far from the minimum; the trust-region solver recovers.
     """
     from scipy.linalg import cholesky, solve_triangular
     from scipy.optimize import least_squares

@@ -62,8 +62,8 @@ MIN_STEREO_IMAGES = 2
 MIN_TILT_SPREAD_DEG = 10.0
 """Boards whose apparent normals (see ``_apparent_tilt_spread``) all lie within this
 angle count as parallel: the focal length then trades against the distance (Zhang 2000,
-section 3.3). Boards tilted by +-3 degrees show about 14 degrees, the paper's +-30
-degrees about 90; lens and prism distortion give parallel boards a few degrees."""
+section 3.3). Lens and prism distortion give truly parallel boards a few degrees of
+apparent spread; the limit sits above that and far below the paper's +-30 degrees."""
 MIN_DISTANCE_RATIO = 1.15
 """Boards whose farthest distance is less than this ratio times the nearest count as
 one distance: the prism's non-central geometry needs a range of depths."""
