@@ -118,7 +118,7 @@ def test_texel_size_that_would_round_the_markers_is_refused(default_preset, tmp_
     path = tmp_path / "bad.json"
     path.write_text(json.dumps(data))
     with pytest.raises(BadInputError, match="texels"):
-        simulate(tmp_path / "out", path, "charuco", seed=0)
+        simulate(tmp_path / "out", path, ["charuco"], seed=0)
 
 
 def test_set_cuts_a_board_larger_than_the_view_in_both_halves(default_preset, charuco_plan):
@@ -197,7 +197,7 @@ def test_simulate_writes_the_set_and_keeps_the_manifest_of_other_sets(tmp_path):
     path = tmp_path / "small.json"
     path.write_text(json.dumps(data))
     out = tmp_path / "run"
-    report = simulate(out, path, "charuco", seed=1)
+    report = simulate(out, path, ["charuco"], seed=1)
     assert report.sets["charuco"]["images"] == data["sets"]["charuco"]["images"]
     manifest = json.loads((out / MANIFEST_NAME).read_text())
     recorded = manifest["preset_data"]
@@ -208,7 +208,7 @@ def test_simulate_writes_the_set_and_keeps_the_manifest_of_other_sets(tmp_path):
     truth = json.loads((out / entry["truth"]).read_text())
     assert truth["target"]["kind"] == "charuco"
     # another set into the same folder: both in the manifest, the preset data of both
-    simulate(out, path, "scene", seed=1)
+    simulate(out, path, ["scene"], seed=1)
     manifest = json.loads((out / MANIFEST_NAME).read_text())
     assert sorted(manifest["sets"]) == ["charuco", "scene"]
     assert list(manifest["preset_data"]["sets"]) == ["scene", "charuco"]  # preset order

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from endomeasure import cli
 from endomeasure.errors import BadInputError
-from endomeasure.pipeline.simulate import MANIFEST_NAME, parse_sets, simulate
+from endomeasure.pipeline.simulate import MANIFEST_NAME, checked_sets, simulate
 
 runner = CliRunner()
 
@@ -24,7 +24,7 @@ def _files(folder):
 
 def test_writes_images_truth_and_manifest(tmp_path, small_preset_file, small_preset):
     out = tmp_path / "run"
-    report = simulate(out, small_preset_file, "calib,test,scene", seed=4)
+    report = simulate(out, small_preset_file, ["calib", "test", "scene"], seed=4)
     manifest = json.loads((out / MANIFEST_NAME).read_text())
     assert manifest["format"] == "endomeasure-simulation"
     assert manifest["split"] == small_preset.split == report.split
@@ -44,17 +44,17 @@ def test_writes_images_truth_and_manifest(tmp_path, small_preset_file, small_pre
 
 def test_same_seed_same_bytes_other_seed_other_images(tmp_path, small_preset_file):
     a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
-    simulate(a, small_preset_file, "test", seed=1)
-    simulate(b, small_preset_file, "test", seed=1)
-    simulate(c, small_preset_file, "test", seed=2)
+    simulate(a, small_preset_file, ["test"], seed=1)
+    simulate(b, small_preset_file, ["test"], seed=1)
+    simulate(c, small_preset_file, ["test"], seed=2)
     files_a, files_b, files_c = _files(a), _files(b), _files(c)
     assert files_a == files_b
     assert files_a["test/test_000.png"] != files_c["test/test_000.png"]
 
 
 def test_noise_free_differs_only_by_the_noise(tmp_path, small_preset_file):
-    simulate(tmp_path / "noisy", small_preset_file, "test", seed=1)
-    simulate(tmp_path / "clean", small_preset_file, "test", seed=1, noise_free=True)
+    simulate(tmp_path / "noisy", small_preset_file, ["test"], seed=1)
+    simulate(tmp_path / "clean", small_preset_file, ["test"], seed=1, noise_free=True)
     noisy = cv2.imread(str(tmp_path / "noisy/test/test_000.png"), cv2.IMREAD_UNCHANGED)
     clean = cv2.imread(str(tmp_path / "clean/test/test_000.png"), cv2.IMREAD_UNCHANGED)
     diff = noisy.astype(float) - clean.astype(float)
@@ -69,19 +69,19 @@ def test_rerun_replaces_stale_images(tmp_path, small_preset_file):
     out = tmp_path / "run"
     (out / "test").mkdir(parents=True)
     (out / "test" / "test_099.png").write_bytes(b"old")
-    simulate(out, small_preset_file, "test", seed=1)
+    simulate(out, small_preset_file, ["test"], seed=1)
     assert not (out / "test" / "test_099.png").exists()
 
 
 def test_bad_arguments_are_domain_errors(tmp_path, small_preset_file):
     with pytest.raises(BadInputError, match="unknown image set"):
-        parse_sets("calib,nope")
+        checked_sets(["calib", "nope"])
     with pytest.raises(BadInputError, match="seed"):
-        simulate(tmp_path / "x", small_preset_file, "test", seed=-1)
+        simulate(tmp_path / "x", small_preset_file, ["test"], seed=-1)
     blocker = tmp_path / "file"
     blocker.write_text("")
     with pytest.raises(BadInputError, match="not a folder"):
-        simulate(blocker, small_preset_file, "test", seed=1)
+        simulate(blocker, small_preset_file, ["test"], seed=1)
 
 
 def test_cli_json_output_and_errors(tmp_path, small_preset_file):

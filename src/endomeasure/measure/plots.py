@@ -1,4 +1,4 @@
-"""Figures of the board test, predicted errors and error maps (matplotlib, Agg).
+"""Figures of calibrations, the board test, predicted errors and error maps (matplotlib, Agg).
 
 matplotlib is imported inside each function (it is slow to import and only the commands
 that draw need it). Each function writes one PNG and returns its path.
@@ -11,7 +11,9 @@ that draw need it). Each function writes one PNG and returns its path.
 - :func:`plot_error_map` — the predicted standard deviation of a template measurement
   over the working volume, one panel per depth plane;
 - :func:`plot_matches` — operator points found automatically in the other half: both
-  halves with the points, their matches and the searched epipolar curves.
+  halves with the points, their matches and the searched epipolar curves;
+- :func:`plot_residuals` — a calibration's residual vectors over the image and residual
+  length against distance.
 """
 
 from __future__ import annotations
@@ -22,7 +24,13 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["plot_board_test", "plot_error_map", "plot_matches", "plot_predicted_vs_actual"]
+__all__ = [
+    "plot_board_test",
+    "plot_error_map",
+    "plot_matches",
+    "plot_predicted_vs_actual",
+    "plot_residuals",
+]
 
 _UNITS = {"x-segment": "mm", "y-segment": "mm", "point-plane": "mm", "area": "mm²"}
 _KINDS = ("x-segment", "y-segment", "point-plane", "area")
@@ -37,10 +45,10 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path: str | Path) -> Path:
+def _save(fig, path: str | Path, dpi: int = 100) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100, bbox_inches="tight")
+    fig.savefig(path, dpi=dpi, bbox_inches="tight")
     import matplotlib.pyplot as plt
 
     plt.close(fig)
@@ -285,3 +293,53 @@ def plot_matches(image: np.ndarray, matches: Sequence[Any], path: str | Path, sp
             zax.set_xlim(u - _ZOOM_PX, u + _ZOOM_PX)
             zax.set_ylim(v + _ZOOM_PX, v - _ZOOM_PX)
     return _save(fig, path)
+
+
+def plot_residuals(result, out_dir: str | Path) -> list[str]:
+    """A calibration's residual vectors over the image and residual length against
+    distance (a ``CalibrationResult``), one PNG each in ``out_dir``; the written paths."""
+    plt = _pyplot()
+    out_dir = Path(out_dir)
+    name = result.model_name
+    width, height = result.model.config.image_size
+    use = result.inliers & np.all(np.isfinite(result.residuals), axis=-1)
+    q, r = result.obs_pixels[use], result.residuals[use]
+    length = np.linalg.norm(r, axis=-1)
+    written = []
+
+    fig, ax = plt.subplots(figsize=(9, 9 * height / width + 0.8))
+    scale = max(float(np.percentile(length, 95)), 1e-12) / 25.0  # 95th percentile ~ 25 px
+    ax.quiver(q[:, 0], q[:, 1], r[:, 0], r[:, 1], length, angles="xy", scale_units="xy",
+              scale=scale, cmap="viridis", width=0.002)  # fmt: skip
+    ax.axvline(result.model.config.split - 0.5, color="0.6", lw=0.8, ls="--")
+    ax.set_xlim(-0.5, width - 0.5)
+    ax.set_ylim(height - 0.5, -0.5)
+    ax.set_aspect("equal")
+    ax.set_xlabel("u [px]")
+    ax.set_ylabel("v [px]")
+    ax.set_title(
+        f"{name}: residual vectors x{1.0 / scale:.0f} (RMS {result.rms:.3f} px, "
+        f"left {result.rms_half[0]:.3f}, right {result.rms_half[1]:.3f})"
+    )
+    written.append(str(_save(fig, out_dir / f"{name}-residual-vectors.png", dpi=110)))
+
+    depth = result.obs_points[use, 2]
+    half = result.obs_half[use]
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for h, colour in ((0, "tab:blue"), (1, "tab:orange")):
+        sel = half == h
+        ax.scatter(
+            depth[sel], length[sel], s=4, alpha=0.5, color=colour, label=("left", "right")[h]
+        )
+    edges = np.linspace(depth.min(), depth.max(), 9)
+    idx = np.clip(np.digitize(depth, edges) - 1, 0, len(edges) - 2)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    rms_bin = [np.sqrt(np.mean(length[idx == k] ** 2)) if np.any(idx == k) else np.nan
+               for k in range(len(centres))]  # fmt: skip
+    ax.plot(centres, rms_bin, "k-o", ms=3, label="RMS per depth bin")
+    ax.set_xlabel("corner depth z [mm]")
+    ax.set_ylabel("residual length [px]")
+    ax.set_title(f"{name}: residual against distance")
+    ax.legend(loc="upper right")
+    written.append(str(_save(fig, out_dir / f"{name}-residual-vs-distance.png", dpi=110)))
+    return written

@@ -35,7 +35,6 @@ __all__ = [
     "calibration_order",
     "load_calibration_inputs",
     "export_session_model",
-    "plot_residuals",
 ]
 
 ALL_MODELS = "all"
@@ -158,66 +157,6 @@ def load_calibration_inputs(session: str | Path):
 # ----- plots ------------------------------------------------------------------------------------
 
 
-def plot_residuals(result, out_dir: Path) -> list[str]:
-    """Residual vectors over the image and residual length against distance, one PNG each.
-
-    Returns the written paths.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    name = result.model_name
-    width, height = result.model.config.image_size
-    use = result.inliers & np.all(np.isfinite(result.residuals), axis=-1)
-    q, r = result.obs_pixels[use], result.residuals[use]
-    length = np.linalg.norm(r, axis=-1)
-    written = []
-
-    fig, ax = plt.subplots(figsize=(9, 9 * height / width + 0.8))
-    scale = max(float(np.percentile(length, 95)), 1e-12) / 25.0  # 95th percentile ~ 25 px
-    ax.quiver(q[:, 0], q[:, 1], r[:, 0], r[:, 1], length, angles="xy", scale_units="xy",
-              scale=scale, cmap="viridis", width=0.002)  # fmt: skip
-    ax.axvline(result.model.config.split - 0.5, color="0.6", lw=0.8, ls="--")
-    ax.set_xlim(-0.5, width - 0.5)
-    ax.set_ylim(height - 0.5, -0.5)
-    ax.set_aspect("equal")
-    ax.set_xlabel("u [px]")
-    ax.set_ylabel("v [px]")
-    ax.set_title(
-        f"{name}: residual vectors x{1.0 / scale:.0f} (RMS {result.rms:.3f} px, "
-        f"left {result.rms_half[0]:.3f}, right {result.rms_half[1]:.3f})"
-    )
-    path = out_dir / f"{name}-residual-vectors.png"
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    written.append(str(path))
-
-    depth = result.obs_points[use, 2]
-    half = result.obs_half[use]
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    for h, colour in ((0, "tab:blue"), (1, "tab:orange")):
-        sel = half == h
-        ax.scatter(depth[sel], length[sel], s=4, alpha=0.5, color=colour, label=Half(h).label)
-    edges = np.linspace(depth.min(), depth.max(), 9)
-    idx = np.clip(np.digitize(depth, edges) - 1, 0, len(edges) - 2)
-    centres = 0.5 * (edges[1:] + edges[:-1])
-    rms_bin = [np.sqrt(np.mean(length[idx == k] ** 2)) if np.any(idx == k) else np.nan
-               for k in range(len(centres))]  # fmt: skip
-    ax.plot(centres, rms_bin, "k-o", ms=3, label="RMS per depth bin")
-    ax.set_xlabel("corner depth z [mm]")
-    ax.set_ylabel("residual length [px]")
-    ax.set_title(f"{name}: residual against distance")
-    ax.legend(loc="upper right")
-    path = out_dir / f"{name}-residual-vs-distance.png"
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    written.append(str(path))
-    return written
-
-
 # ----- the command ------------------------------------------------------------------------------
 
 
@@ -297,6 +236,7 @@ def calibrate_session(
     """
     from endomeasure.io.records import calibration_record
     from endomeasure.io.session import edit_session
+    from endomeasure.measure.plots import plot_residuals
     from endomeasure.solvers.calibrate import calibrate
 
     names = calibration_order(model)

@@ -68,7 +68,7 @@ def checked_sets(names: Iterable[str]) -> list[str]:
     """Image set names, validated, in canonical order."""
     from endomeasure.simulate.scenes import SET_NAMES
 
-    names = list(names)
+    names = [names] if isinstance(names, str) else list(names)
     unknown = sorted(set(names) - set(SET_NAMES))
     if unknown or not names:
         raise BadInputError(
@@ -76,13 +76,6 @@ def checked_sets(names: Iterable[str]) -> list[str]:
             hint=f"use a comma-separated list of {', '.join(SET_NAMES)}",
         )
     return [s for s in SET_NAMES if s in names]
-
-
-def parse_sets(text: str | Iterable[str]) -> list[str]:
-    """Kept for callers of its earlier place: the CLI reads ``--set`` with
-    :func:`endomeasure.cli.parse_sets`; a comma-separated string here is split the same way."""
-    items = text.split(",") if isinstance(text, str) else list(text)
-    return checked_sets(s.strip().lower() for s in items if s.strip())
 
 
 def _noise_rng(seed: int, set_name: str, index: int):
@@ -212,7 +205,7 @@ def simulate(
     start = time.perf_counter()
     if int(seed) < 0:
         raise BadInputError(f"seed must be a non-negative integer, not {seed}")
-    set_names = parse_sets(sets) if isinstance(sets, str) else checked_sets(sets)
+    set_names = checked_sets(sets)
     loaded = load_preset(preset)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
