@@ -119,16 +119,23 @@ class ParamBatch(NamedTuple):
         """:meth:`of`, checked against items of leading shape ``shape`` and vectors of
         ``size`` parameters, with the index flattened (ValueError when they differ)."""
         batch = cls.of(params)
-        if batch.index.shape != tuple(shape) or batch.table.shape[1:] != (size,):
+        if batch.index is None and batch.table.shape[0] == 1:  # one vector for every item
+            batch = cls(batch.table, np.zeros(tuple(shape), dtype=np.int64))
+        if (
+            batch.index is None
+            or batch.index.shape != tuple(shape)
+            or batch.table.shape[1:] != (size,)
+        ):
             raise ValueError(
                 f"params must have shape {(*shape, size)}, got a batch of "
-                f"{batch.index.shape} vectors of {batch.table.shape[1:]}"
+                f"{getattr(batch.index, 'shape', None)} vectors of {batch.table.shape[1:]}"
             )
         return cls(batch.table, batch.index.reshape(-1))
 
     def take(self, items) -> ParamBatch:
-        """The batch of a selection of the items (any numpy index of ``index``)."""
-        return ParamBatch(self.table, self.index[items])
+        """The batch of a selection of the items (any numpy index of ``index``); a batch
+        of one shared vector (``index`` None) stays one."""
+        return self if self.index is None else ParamBatch(self.table, self.index[items])
 
     def per_item(self, j: int) -> float | np.ndarray:
         """Parameter ``j`` of every item: a float when the batch holds one vector."""

@@ -26,7 +26,6 @@ from endomeasure.models.lens import LENS_NAMES, lens_pixels_and_jacobians, lens_
 
 __all__ = ["PinholeModel", "project_pinhole", "UNDISTORT_TOL_PX"]
 
-_INTRINSICS = LENS_NAMES
 UNDISTORT_TOL_PX = 1e-9  # px; well below the 1e-6 px the spec requires of the inverse
 
 
@@ -70,8 +69,8 @@ class PinholeModel(CameraModel):
 
     NAME: ClassVar[str] = "pinhole"
     PARAM_NAMES: ClassVar[tuple[str, ...]] = (
-        tuple(f"left_{n}" for n in _INTRINSICS)
-        + tuple(f"right_{n}" for n in _INTRINSICS)
+        tuple(f"left_{n}" for n in LENS_NAMES)
+        + tuple(f"right_{n}" for n in LENS_NAMES)
         + ("rx", "ry", "rz", "tx", "ty", "tz")
     )
     PARAM_UNITS: ClassVar[dict[str, str]] = {

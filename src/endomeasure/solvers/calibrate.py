@@ -240,7 +240,7 @@ class CalibrationResult:
         return np.clip(c, -1.0, 1.0)
 
     def named_std(self) -> dict[str, float]:
-        return dict(zip(self.free_names, self.std.tolist(), strict=False))
+        return dict(zip(self.free_names, self.std.tolist(), strict=True))
 
     def strongest_correlations(self, count: int = 5) -> list[tuple[str, str, float]]:
         """The ``count`` parameter pairs with the largest |correlation|."""
@@ -364,7 +364,7 @@ def _collect(
         k = len(names)
         names.append(view.name)
         bnames.append(view.board)
-        for h, hv in zip(Half, halves, strict=False):
+        for h, hv in zip(Half, halves, strict=True):
             if hv is None:
                 continue
             ids, pix = hv
@@ -400,7 +400,7 @@ def _check_amount(obs: Observations) -> None:
         raise CalibrationError(
             f"too few usable calibration images: {obs.n_images} (need {MIN_IMAGES})", hint=hint
         )
-    for h, count in zip(Half, per_half, strict=False):
+    for h, count in zip(Half, per_half, strict=True):
         if count < MIN_IMAGES - 1:
             raise CalibrationError(
                 f"too few images with {MIN_CORNERS_PER_HALF}+ corners in the {h.label} half: "
