@@ -18,10 +18,12 @@ cell), issue 8's std band (every zone) and 2-sigma share (``*_TARGET`` below).
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -129,6 +131,27 @@ def noise_figures(el: np.ndarray, er: np.ndarray, pairs: np.ndarray) -> dict:
     }
 
 
+def zone_start(distance_mm: float, zone_mm: float) -> float:
+    """The start of the board-test zone that holds ``distance_mm``: the zones of
+    :func:`endomeasure.measure.board_test.zone_groups`, ``[k w, (k+1) w)`` for integer k
+    (an image's noise group must carry the key its measurements' zones have;
+    ``tests/bench`` checks that the two agree)."""
+    return float(np.floor(float(distance_mm) / zone_mm) * zone_mm)
+
+
+def neighbour_pairs(ids: np.ndarray, cols: int, errors: dict) -> list[tuple]:
+    """(error, error) of every corner and its right and lower neighbour, per half;
+    ``errors`` maps half -> (len(ids), 2) in the order of ``ids``."""
+    at = {int(i): k for k, i in enumerate(ids)}
+    pairs = []
+    for i, k in at.items():
+        for j in ((i + 1) if (i % cols) + 1 < cols else -1, i + cols):
+            if j in at:
+                for half in ("left", "right"):
+                    pairs.append((errors[half][k], errors[half][at[j]]))
+    return pairs
+
+
 def detection_noise(session: Path, data: Path, zone_mm: float | None = None) -> dict:
     """Detected minus true corner pixels of the test set: sigma and correlations
     (between a corner's left and right errors, and between neighbouring corners of one
@@ -151,26 +174,14 @@ def detection_noise(session: Path, data: Path, zone_mm: float | None = None) -> 
         for h in (left, right):
             row = {int(i): k for k, i in enumerate(h.ids)}
             e[h.half] = h.errors[[row[int(i)] for i in ids]]
-        at = {int(i): k for k, i in enumerate(ids)}
-        pairs = []
-        cols = left.cols
-        for i, k in at.items():
-            for j in ((i + 1) if (i % cols) + 1 < cols else -1, i + cols):
-                if j in at:
-                    for half in ("left", "right"):
-                        pairs.append((e[half][k], e[half][at[j]]))
+        pairs = neighbour_pairs(ids, left.cols, e)
         # the random part: minus the image's mean error in each half (a systematic shift
         # of the whole board in one half, which moves its depth, not its shape)
         r = {half: e[half] - e[half].mean(axis=0) for half in e}
-        rpairs = []
-        for i, k in at.items():
-            for j in ((i + 1) if (i % cols) + 1 < cols else -1, i + cols):
-                if j in at:
-                    for half in ("left", "right"):
-                        rpairs.append((r[half][k], r[half][at[j]]))
+        rpairs = neighbour_pairs(ids, left.cols, r)
         offset = e["left"].mean(axis=0) - e["right"].mean(axis=0)
         truth = load_truth(data, image)
-        zone = float(np.floor(float(truth["distance_mm"]) / zone_mm) * zone_mm) if zone_mm else None
+        zone = zone_start(truth["distance_mm"], zone_mm) if zone_mm else None
         keys = [None] + ([zone, (truth["board_spec"], zone)] if zone_mm else [])
         for key in keys:
             groups.setdefault(key, []).append(
@@ -195,29 +206,39 @@ def detection_noise(session: Path, data: Path, zone_mm: float | None = None) -> 
     return result
 
 
+def truth_board_sets(images: list[tuple[str, dict, np.ndarray, np.ndarray]]) -> list:
+    """The board sets of :func:`endomeasure.measure.board_runs.board_sets` from given
+    pixels: ``(image, truth, left, right)`` per image, every true corner id in both halves,
+    the boards in the order they first appear."""
+    from endomeasure.conventions import Half
+    from endomeasure.io.session import Detection
+    from endomeasure.measure.board_runs import board_sets
+
+    boards, detections = {}, []
+    for image, truth, left, right in images:
+        boards.setdefault(truth["board_spec"], truth["target"])
+        ids = np.asarray(truth["corners"]["ids"], dtype=np.int64)
+        for half, pixels in ((Half.LEFT, left), (Half.RIGHT, right)):
+            detections.append(Detection(image, truth["board_spec"], half, ids, pixels))
+    return board_sets(boards, detections, [image for image, *_ in images])
+
+
 def truth_board_test(session: Path, data: Path, zone_mm: float) -> dict:
     """The board test on the true corner pixels: the models' own error, no image noise."""
     from endomeasure.io.records import load_calibrated_model
     from endomeasure.io.session import open_session
-    from endomeasure.measure.board_runs import BoardSet, run_board_test
+    from endomeasure.measure.board_runs import run_board_test
 
     with open_session(session) as s:
         models = {n: load_calibrated_model(s, n, session).model for n in s.model_names()}
         test = s.image_names("test")
-    sets: dict[str, BoardSet] = {}
+    images = []
     for image in test:
         t = truth_of(data, image)
-        tg = t["target"]
-        bs = sets.setdefault(
-            t["board_spec"],
-            BoardSet(t["board_spec"], tg["cols"], tg["rows"], tg["square_mm"], [], [], [], []),
-        )
         px = t["corners"]["pixels"]
-        bs.images.append(image)
-        bs.ids.append(np.asarray(t["corners"]["ids"], dtype=np.int64))
-        bs.left.append(np.asarray(px["left"], dtype=float))
-        bs.right.append(np.asarray(px["right"], dtype=float))
-    return {n: run_board_test(n, m, list(sets.values()), zone_mm) for n, m in models.items()}
+        images.append((image, t, np.asarray(px["left"], float), np.asarray(px["right"], float)))
+    sets = truth_board_sets(images)
+    return {n: run_board_test(n, m, sets, zone_mm) for n, m in models.items()}
 
 
 def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int) -> dict:
@@ -231,37 +252,34 @@ def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int) -> di
     no prediction can remove. Returns, per (board, zone), the issue 7 figures of every
     run, and per run the zones, those within +-25 % and those with >= 90 % in the band.
     """
-    from endomeasure.measure.board_runs import BoardSet, prediction_zones, run_board_test
+    from endomeasure.measure.board_runs import prediction_zones, run_board_test
+    from endomeasure.measure.predict import ImageNoise
     from endomeasure.models import model_from_dict
     from endomeasure.pipeline.predict import board_predictions  # parses the board grids
 
     truth_model = model_from_dict(load_manifest(data)["truth_model"])
-    truths = [
-        load_truth(data, Path(i["image"]).stem)
-        for i in load_manifest(data)["sets"]["test"]["images"]
-    ]
+    # by the manifest's names: unique, while a frame of an extra test seed carries the
+    # name of its own render in its truth (board_sets keys the images by name)
+    names = [Path(i["image"]).stem for i in load_manifest(data)["sets"]["test"]["images"]]
+    truths = [(name, load_truth(data, name)) for name in names]
     rng = np.random.default_rng(8)
     preds, figures, counts = {}, {}, []
     for _ in range(reps):
-        sets: dict[str, BoardSet] = {}
-        for t in truths:
-            tg, px = t["target"], t["corners"]["pixels"]
-            zone = float(np.floor(float(t["distance_mm"]) / zone_mm) * zone_mm)
-            s = np.asarray(groups[(t["board_spec"], zone)]["sigma_uv"])
-            bs = sets.setdefault(
-                t["board_spec"],
-                BoardSet(t["board_spec"], tg["cols"], tg["rows"], tg["square_mm"], [], [], [], []),
+        images = []
+        for name, t in truths:
+            s = np.asarray(
+                groups[(t["board_spec"], zone_start(t["distance_mm"], zone_mm))]["sigma_uv"]
             )
-            bs.images.append(Path(t["image"]).stem)
-            bs.ids.append(np.asarray(t["corners"]["ids"], dtype=np.int64))
-            for half, out in (("left", bs.left), ("right", bs.right)):
-                q = np.asarray(px[half], dtype=float)
-                out.append(q + rng.normal(0.0, 1.0, q.shape) * s)
-        bt = run_board_test("truth", truth_model, list(sets.values()), zone_mm)
+            noisy = []
+            for half in ("left", "right"):
+                q = np.asarray(t["corners"]["pixels"][half], dtype=float)
+                noisy.append(q + rng.normal(0.0, 1.0, q.shape) * s)
+            images.append((name, t, *noisy))
+        bt = run_board_test("truth", truth_model, truth_board_sets(images), zone_mm)
         rows = []
         for key, nz in groups.items():
             if key not in preds:  # the prediction at the ideal board: the same every run
-                preds[key] = board_predictions(bt, truth_model, sigma=tuple(nz["sigma_uv"]))
+                preds[key] = board_predictions(bt, truth_model, ImageNoise(tuple(nz["sigma_uv"])))
             p = preds[key]
             zones = prediction_zones(
                 bt, p["bias"], p["std"], p["std_image"], p["std_calibration"], zone_mm
@@ -274,6 +292,11 @@ def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int) -> di
         for z in rows:
             f = figures.setdefault((z["board"], z["kind"], z["zone_start"]), [])
             f.append((z["actual_mean"], z["actual_std"], z["true"]))
+    return {"reps": reps, "counts": counts, "issue7": _issue7_runs(figures, reps)}
+
+
+def _issue7_runs(figures: dict, reps: int) -> dict:
+    """Per (board, zone): the issue 7 figures of each run that has all four kinds."""
     met = {}
     for board, kind, z0 in figures:
         if kind != "x-segment":
@@ -284,7 +307,7 @@ def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int) -> di
             for r in range(reps)
         ]
         met[(board, z0)] = [r for r in runs if r is not None]
-    return {"reps": reps, "counts": counts, "issue7": met}
+    return met
 
 
 def issue7_figures(cells: dict) -> tuple[float, float, float, float, bool] | None:
@@ -374,7 +397,7 @@ def group_sigma_prediction(
     return {"zones": zones, "within_band": band_num / max(band_den, 1)}
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = script_parser(__doc__, work=True)
     ap.add_argument("data", nargs="?", default=str(ROOT / "sample_sessions"))
     ap.add_argument(
@@ -390,10 +413,28 @@ def main(argv: list[str] | None = None) -> int:
         "--reps", type=int, default=20, help="noise draws of the perfect-model reference"
     )
     args = ap.parse_args(argv)
-    report = Report("bench/accuracy_report.py", args, ACCURACY, argv=argv)
     if args.quick:
         args.reps, args.test_seeds = QUICK_REPS, ""
-    t0 = time.perf_counter()
+    return args
+
+
+@dataclass(frozen=True)
+class Setup:
+    """Where one run reads and writes, and the session it built (or reused)."""
+
+    data: Path
+    """The simulated set (with ``--test-seeds``: the combined one in ``work/data``)."""
+    work: Path
+    session: Path
+    seeds: list[int]
+    command: str
+    """The arguments of this run as the docs quote them."""
+    calibration: dict
+    """The report of ``endomeasure calibrate --json``."""
+
+
+def prepare(args: argparse.Namespace) -> Setup:
+    """The data (with the extra test frames), the work folder and the calibrated session."""
     data = Path(args.data).resolve()
     work = Path(args.work or tempfile.mkdtemp(prefix="endomeasure-acc-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -409,18 +450,15 @@ def main(argv: list[str] | None = None) -> int:
     else:
         cal = build_session(data, session)
         cal_file.write_text(json.dumps(cal))
-    zone_mm = args.zone_mm
-    bt = run(
-        "measure", session, "--board-test", "--model", "all", "--zone-mm", zone_mm,
-        "--json", "--plot", work / "fig4.png",
-    )  # fmt: skip
-    noise = detection_noise(session, data, zone_mm)
-    truth = truth_board_test(session, data, zone_mm)
-    ref = perfect_reference(data, noise["board_zones"], zone_mm, reps=args.reps)
+    return Setup(data, work, session, seeds, command, cal)
+
+
+def noise_predictions(session: Path, noise: dict, zone_mm: float, fig5: Path) -> dict:
+    """``predict-error --board-test`` of raytrace under each noise assumption, by label."""
     sigma = noise["sigma"]
     rho_i = max(noise["rho_images"][0], 0.0)
     rho_p = max(noise["rho_points"][0], 0.0)
-    preds = {"iid": predict(session, sigma, zone_mm, plot=work / "fig5.png")}
+    preds = {"iid": predict(session, sigma, zone_mm, plot=fig5)}
     preds["iid, image noise only"] = predict(session, sigma, zone_mm, "--no-calibration")
     for r in RHOS[1:]:
         preds[f"rho_images {r:g}"] = predict(session, sigma, zone_mm, "--rho-images", r)
@@ -444,20 +482,59 @@ def main(argv: list[str] | None = None) -> int:
         session, boards_, zone_mm, per_axis=True
     )
     preds[PRIMARY] = group_sigma_prediction(session, boards_, zone_mm, per_axis=True, rho=True)
+    return preds
 
-    sim = load_manifest(data)
+
+@dataclass(frozen=True)
+class Studies:
+    """Everything the section reports."""
+
+    summary: list[dict]
+    """The board test's zone summary of both models (``measure --board-test --json``)."""
+    noise: dict
+    """:func:`detection_noise` of the test set, with its zones and board zones."""
+    truth: dict
+    """:func:`truth_board_test`, by model."""
+    reference: dict
+    """:func:`perfect_reference`."""
+    predictions: dict
+    """:func:`noise_predictions`."""
+
+    def by_model(self) -> dict[str, dict[tuple, dict]]:
+        """The summary rows of raytrace and pinhole by (board, kind, zone start)."""
+        return {
+            m: {zone_key(r): r for r in self.summary if r["model"] == m}
+            for m in ("raytrace", "pinhole")
+        }
+
+
+def run_studies(setup: Setup, zone_mm: float, reps: int) -> Studies:
+    """The board test, the detection noise, the board test on the true pixels, the
+    perfect-model reference and the predictions."""
+    session, work, data = setup.session, setup.work, setup.data
+    bt = run(
+        "measure", session, "--board-test", "--model", "all", "--zone-mm", zone_mm,
+        "--json", "--plot", work / "fig4.png",
+    )  # fmt: skip
+    noise = detection_noise(session, data, zone_mm)
+    truth = truth_board_test(session, data, zone_mm)
+    ref = perfect_reference(data, noise["board_zones"], zone_mm, reps=reps)
+    preds = noise_predictions(session, noise, zone_mm, work / "fig5.png")
+    return Studies(bt["summary"], noise, truth, ref, preds)
+
+
+def header_lines(setup: Setup, zone_mm: float, seconds: float) -> list[str]:
+    """The title, how to reproduce the section, the data and the calibration."""
+    sim = load_manifest(setup.data)
     n_test = len(sim["sets"]["test"]["images"])
-    summary = bt["summary"]
-    by_model = {
-        m: {zone_key(r): r for r in summary if r["model"] == m} for m in ("raytrace", "pinhole")
-    }
-    lines = [
+    seeds = setup.seeds
+    return [
         "## Measurement (board test) and error prediction",
         "",
-        f"Reproduce: `python bench/accuracy_report.py {command}`"
+        f"Reproduce: `python bench/accuracy_report.py {setup.command}`"
         " (builds a session with `endomeasure detect` / `calibrate`, then runs `endomeasure "
         "measure --board-test --model all` and `endomeasure predict-error --board-test` at the "
-        f"measured detection noise; {time.perf_counter() - t0:.0f} s here, {machine()}). Data: "
+        f"measured detection noise; {seconds:.0f} s here, {machine()}). Data: "
         f"preset `{sim['preset']['name']}`, seed {sim['seed']} (calibration set"
         + (f"; test set seeds 0, {', '.join(map(str, seeds))}: " if seeds else " and test set: ")
         + f"{n_test} test images, board perpendicular to the axis, 1 mm steps). Zones of "
@@ -466,12 +543,18 @@ def main(argv: list[str] | None = None) -> int:
         "Calibration: "
         + ", ".join(
             f"{k} RMS {m['rms_px']:.3f} px ({m['n_corners']} corners, {m['n_outliers']} outliers)"
-            for k, m in cal["models"].items()
+            for k, m in setup.calibration["models"].items()
         )
         + ".",
         "",
+    ]
+
+
+def noise_lines(noise: dict, zone_mm: float) -> list[str]:
+    """The detection noise of the test set, overall and per distance zone."""
+    lines = [
         f"Detection noise of the test set against the simulator's true corners ({noise['n']} "
-        f"corners in both halves): sigma {sigma:.4f} px per coordinate (u "
+        f"corners in both halves): sigma {noise['sigma']:.4f} px per coordinate (u "
         f"{noise['sigma_uv'][0]:.4f}, v {noise['sigma_uv'][1]:.4f}; mean error u "
         f"{noise['mean_uv'][0]:+.4f}, v {noise['mean_uv'][1]:+.4f}); correlation of a corner's "
         f"left and right errors rho_images u {noise['rho_images'][0]:+.2f}, v "
@@ -494,7 +577,7 @@ def main(argv: list[str] | None = None) -> int:
             f"| {rz['sigma_uv'][1]:.4f} | {rz['rho_images'][0]:+.2f} | {rz['rho_points'][0]:+.2f} "
             f"| {nz['disparity_random_std_u']:.4f} |"
         )
-    lines += [
+    return lines + [
         "",
         "Random: the same after removing each image's mean error in each half (a shift of "
         "the whole board in one half); disparity offset: the mean of that shift, left minus "
@@ -503,8 +586,11 @@ def main(argv: list[str] | None = None) -> int:
         "would give sqrt(2) sigma).",
     ]
 
-    # ----- issue 7: raytrace targets per zone
-    lines += [
+
+def issue7_lines(studies: Studies, zone_mm: float, report: Report) -> list[str]:
+    """Issue 7's four targets in every raytrace board/zone cell, against exact optics."""
+    ref = studies.reference
+    lines = [
         "",
         "### Issue 7 targets: raytrace, detected corners, every zone",
         "",
@@ -519,7 +605,7 @@ def main(argv: list[str] | None = None) -> int:
         "| exact optics: x-segment % | exact optics: draws meeting all four |",
         "|---|---|---:|---:|---:|---:|---:|---|---:|---:|",
     ]
-    ray = by_model["raytrace"]
+    ray = studies.by_model()["raytrace"]
     zones7 = sorted({(k[0], k[2]) for k in ray})
     n_met = 0
     for board, z0 in zones7:
@@ -539,10 +625,12 @@ def main(argv: list[str] | None = None) -> int:
             f"| {exact_x} | {exact_met} |"
         )
     issue7 = report.check(ISSUE7_TARGET, len(zones7) - n_met)
-    lines += ["", f"Zones meeting all four targets: {n_met} of {len(zones7)} ({issue7})."]
+    return lines + ["", f"Zones meeting all four targets: {n_met} of {len(zones7)} ({issue7})."]
 
-    # ----- pinhole vs raytrace, zone by zone
-    lines += [
+
+def model_comparison_lines(studies: Studies, zone_mm: float) -> list[str]:
+    """Pinhole against raytrace per board, kind and zone, on detected and true pixels."""
+    lines = [
         "",
         "### Pinhole against raytrace, zone by zone (detected corners; true pixels)",
         "",
@@ -555,11 +643,12 @@ def main(argv: list[str] | None = None) -> int:
         "|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     tr = {}
-    for name, mb in truth.items():
+    for name, mb in studies.truth.items():
         s_ = mb.summary
         for i in range(s_.kind.shape[0]):
             rel = 100 * s_.mean_error[i] / s_.true[i] if s_.true[i] else float(s_.mean_error[i])
             tr[(name, mb.summary_board[i], str(s_.kind[i]), float(s_.zone_start[i]))] = rel
+    by_model = studies.by_model()
     keys = sorted(
         set(by_model["raytrace"]) | set(by_model["pinhole"]),
         key=lambda k: (k[0], ["x-segment", "y-segment", "point-plane", "area"].index(k[1]), k[2]),
@@ -586,14 +675,18 @@ def main(argv: list[str] | None = None) -> int:
             f"| {board_name(board)} | {kind} | {z0:g}-{z0 + zone_mm:g} | {n} | {mean(rr)} | "
             f"{mean(pr)} | {std(rr)} | {std(pr)} | {tmean('raytrace')} | {tmean('pinhole')} |"
         )
+    return lines
 
-    # ----- issue 8: predicted vs actual
+
+def prediction_lines(studies: Studies, zone_mm: float, report: Report) -> list[str]:
+    """Issue 8: the primary prediction against the actual errors, zone by zone."""
+    preds, noise, ref = studies.predictions, studies.noise, studies.reference
     p = preds[PRIMARY]
     nz, ok_std, ok_band = zone_verdicts(p["zones"])
     counts = np.array(ref["counts"])
     std_check = report.check(STD_BAND_TARGET, nz - ok_std)
     band_check = report.check(IN_BAND_TARGET, 100 * p["within_band"])
-    lines += [
+    lines = [
         "",
         "### Predicted vs actual (raytrace, UT, the measured detection noise of each board and "
         "zone: sigma of u and v, correlations; with the calibration covariance)",
@@ -621,7 +714,7 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"Errors inside their predicted 2-sigma band: {100 * p['within_band']:.1f} % "
         f"(target >= {IN_BAND_TARGET.limit:g} %: {band_check}) "
-        f"(one sigma {sigma:.4f} px for everything: "
+        f"(one sigma {noise['sigma']:.4f} px for everything: "
         f"{100 * preds['iid']['within_band']:.1f} %). "
         f"Zones with actual/predicted std within +-{100 * STD_BAND:.0f} %: **{ok_std} of {nz}** "
         f"(target: every zone; {std_check}) "
@@ -655,10 +748,12 @@ def main(argv: list[str] | None = None) -> int:
             f"{fmt(z['predicted_std'], sign=False)} | {fmt(ratio, 2, False)}{flag} | "
             f"{100 * z['within_band']:.0f} % |"
         )
-    lines += ["", "(* outside +-25 %.)"]
+    return lines + ["", "(* outside +-25 %.)"]
 
-    # ----- correlation sweep and the measured noise structure
-    lines += [
+
+def assumption_lines(preds: dict) -> list[str]:
+    """The correlation sweep: every noise assumption's prediction against 'iid'."""
+    lines = [
         "",
         "### Effect of the noise assumptions on the prediction (raytrace)",
         "",
@@ -695,7 +790,12 @@ def main(argv: list[str] | None = None) -> int:
             + " | ".join(f"{v:.2f}" for v in rel)
             + f" | {med:.2f} | {ok_std}/{nz} | {100 * q['within_band']:.1f} % |"
         )
-    status = report.finish({SECTION: "\n".join(lines)})
+    return lines
+
+
+def write_report_json(work: Path, studies: Studies) -> None:
+    """The figures behind the section, as JSON next to the session."""
+    noise = studies.noise
     (work / "report.json").write_text(
         json.dumps(
             {
@@ -704,14 +804,33 @@ def main(argv: list[str] | None = None) -> int:
                 "noise_board_zones": {
                     f"{b} {z:g}": v for (b, z), v in noise["board_zones"].items()
                 },
-                "perfect_reference_counts": ref["counts"],
-                "predictions": preds,
-                "board_test": summary,
+                "perfect_reference_counts": studies.reference["counts"],
+                "predictions": studies.predictions,
+                "board_test": studies.summary,
             },
             default=float,
         )
     )
-    print(f"\nsession, fig4.png, fig5.png and report.json in {work}", file=sys.stderr)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    report = Report("bench/accuracy_report.py", args, ACCURACY, argv=argv)
+    t0 = time.perf_counter()
+    setup = prepare(args)
+    zone_mm = args.zone_mm
+    studies = run_studies(setup, zone_mm, args.reps)
+    lines = [
+        *header_lines(setup, zone_mm, time.perf_counter() - t0),
+        *noise_lines(studies.noise, zone_mm),
+        *issue7_lines(studies, zone_mm, report),
+        *model_comparison_lines(studies, zone_mm),
+        *prediction_lines(studies, zone_mm, report),
+        *assumption_lines(studies.predictions),
+    ]
+    status = report.finish({SECTION: "\n".join(lines)})
+    write_report_json(setup.work, studies)
+    print(f"\nsession, fig4.png, fig5.png and report.json in {setup.work}", file=sys.stderr)
     return status
 
 

@@ -1,0 +1,63 @@
+"""bench/accuracy_report.py's own helpers, without running the script: an image's zone is
+the board test's zone, and the board sets of given pixels are the library's."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from endomeasure.measure.board_test import BoardTestTable, zone_summary
+
+BENCH = Path(__file__).resolve().parents[2] / "bench"
+
+
+def _load_accuracy_report():
+    spec = importlib.util.spec_from_file_location("accuracy_report", BENCH / "accuracy_report.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+report = _load_accuracy_report()
+
+
+def _one_row_table(z_mm: float) -> BoardTestTable:
+    one = np.ones(1)
+    return BoardTestTable(
+        np.zeros(1, int), np.array(["x-segment"]), np.array([[0, 1, -1, -1]]), one, one,
+        np.zeros(1), np.array([z_mm]), np.zeros((1, 2)),
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("zone_mm", [5.0, 2.5, 3.0, 0.7])
+def test_an_images_zone_is_the_zone_the_board_test_reports(zone_mm):
+    for z in (0.0, 9.999, 10.0, 12.0, 14.999999, 15.0, 27.3, 40.0, -0.1, 35.0 - 1e-12):
+        summary = zone_summary({"m": _one_row_table(z)}, zone_mm)
+        assert report.zone_start(z, zone_mm) == summary.zone_start[0], (z, zone_mm)
+
+
+def _truth(board: str, cols: int, n: int) -> dict:
+    return {
+        "board_spec": board,
+        "target": {"cols": cols, "rows": n // cols, "square_mm": 1.5},
+        "corners": {"ids": list(range(n))},
+    }
+
+
+def test_truth_board_sets_keep_every_corner_and_the_first_seen_board_order():
+    rng = np.random.default_rng(0)
+    images = []
+    for name, board in (("a0", "b:2"), ("a1", "b:1"), ("a2", "b:2")):
+        truth = _truth(board, 3, 6)
+        images.append((name, truth, rng.normal(size=(6, 2)), rng.normal(size=(6, 2))))
+    sets = report.truth_board_sets(images)
+    assert [(s.board, s.images) for s in sets] == [("b:2", ["a0", "a2"]), ("b:1", ["a1"])]
+    assert (sets[0].cols, sets[0].rows, sets[0].square_mm) == (3, 2, 1.5)
+    np.testing.assert_array_equal(sets[0].left[1], images[2][2])
+    np.testing.assert_array_equal(sets[0].right[0], images[0][3])
+    assert sets[1].ids[0].dtype == np.int64 and list(sets[1].ids[0]) == list(range(6))
