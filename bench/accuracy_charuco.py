@@ -24,6 +24,7 @@ Target (issue 5, ChArUco): no wrong id with ``detect``'s default refinement, bot
 
 from __future__ import annotations
 
+import argparse
 import textwrap
 import time
 
@@ -120,27 +121,20 @@ def table(stats, render_label) -> list[str]:
     return rows
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = script_parser(__doc__)
     parser.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 of the set (3)")
     parser.add_argument("--sweep", action="store_true", help="also try other window cuts")
     args = parser.parse_args(argv)
-    report = Report("bench/accuracy_charuco.py", args, ACCURACY, argv=argv)
     if args.quick:
         args.seeds = 1
+    return args
 
-    from endomeasure.features.boards import parse_board_spec
-    from endomeasure.features.charuco import (
-        DEFAULT_CHARUCO_REFINEMENT,
-        SYMMETRY_WINDOW_FRACTION,
-        symmetric_radius_squares,
-    )
-    from endomeasure.simulate.preset import load_preset
-    from endomeasure.simulate.targets import target_from_preset
 
-    preset = load_preset("default")
-    board = target_from_preset("charuco", preset.targets["charuco"])
-    spec = parse_board_spec(board.spec)
+def refinement_variants(sweep: bool) -> dict[str, tuple]:
+    """The refinements compared, by table label: ``(how,)`` or ``("symmetry", cut)``."""
+    from endomeasure.features.charuco import SYMMETRY_WINDOW_FRACTION
+
     variants = {
         "`opencv`: CharucoDetector": ("opencv",),
         "`subpix`: + cornerSubPix (window in the gap)": ("subpix",),
@@ -149,16 +143,20 @@ def main(argv: list[str] | None = None) -> int:
             SYMMETRY_WINDOW_FRACTION,
         ),
     }
-    if args.sweep:
+    if sweep:
         for f in SWEEP_FRACTIONS:
             if f != SYMMETRY_WINDOW_FRACTION:
                 variants[f"point symmetry, cut {f:g}"] = ("symmetry", f)
-    seeds = list(range(args.seeds))
-    start = time.perf_counter()
-    lines = []
-    n_images = 0
-    squares: list[float] = []
-    summary = {}
+    return variants
+
+
+def run_renders(preset, seeds: list[int], variants: dict) -> dict:
+    """Both renders (default noise, noise-free) of every seed, every variant evaluated:
+    the table rows, the default refinement's stats per render, the RMS per refinement
+    with the default noise, the square sizes and the image count."""
+    from endomeasure.features.charuco import DEFAULT_CHARUCO_REFINEMENT
+
+    lines, squares, summary, rms, n_images = [], [], {}, {}, 0
     default_name = next(n for n, how in variants.items() if how[0] == DEFAULT_CHARUCO_REFINEMENT)
     for noise_free, label in ((False, "default noise"), (True, "noise-free")):
         renders = render_set(preset, seeds, noise_free)
@@ -173,7 +171,16 @@ def main(argv: list[str] | None = None) -> int:
                 for n, how in variants.items()
                 if n == default_name or how[0] != "symmetry"
             }
-    seconds = time.perf_counter() - start
+    return {"lines": lines, "squares": squares, "summary": summary, "rms": rms,
+            "n_images": n_images}  # fmt: skip
+
+
+def section_body(args, board, spec, runs: dict, seconds: float, report: Report) -> str:
+    """The section: how it was made, the table and the verdict (checks the target)."""
+    from endomeasure.features.charuco import DEFAULT_CHARUCO_REFINEMENT, symmetric_radius_squares
+
+    seeds = list(range(args.seeds))
+    summary, rms, squares = runs["summary"], runs["rms"], runs["squares"]
     r_sym = symmetric_radius_squares(spec)
     n_corners = sum(sum(e.size for e in s["errors"]) + s["wrong"] for s in summary.values())
     n_wrong = sum(s["wrong"] for s in summary.values())
@@ -184,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
         f"Made by `.venv/bin/python bench/accuracy_charuco.py --seeds {args.seeds}"
         f"{' --sweep' if args.sweep else ''}` ({time.strftime('%Y-%m-%d')}, "
         f"{seconds:.0f} s): the default preset's `charuco` set for seeds "
-        f"{seeds[0]}-{seeds[-1]} ({n_images} images of `{board.spec}`, "
+        f"{seeds[0]}-{seeds[-1]} ({runs['n_images']} images of `{board.spec}`, "
         f"{board.squares_x * board.square_mm:g} x {board.squares_y * board.square_mm:g} mm, "
         "at 10-20 mm, tilted up to 30 degrees about x and y, rolled up to 20; the board is "
         "cut by the field in both halves of every image), rendered with the default noise "
@@ -213,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
         "`tests/features/test_charuco_simulated.py` repeats this end to end on one image "
         "(`detect_split_image` with the truth's spec)."
     )
-    body = "\n".join(
+    return "\n".join(
         [
             "## ChArUco against the simulator's truth",
             "",
@@ -222,11 +229,26 @@ def main(argv: list[str] | None = None) -> int:
             "| refinement | render | halves found | corners | RMS px | 95 % px | max px "
             "| wrong ids |",
             "|---|---|---:|---:|---:|---:|---:|---:|",
-            *lines,
+            *runs["lines"],
             "",
             textwrap.fill(verdict, 88, break_on_hyphens=False),
         ]
     )
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    report = Report("bench/accuracy_charuco.py", args, ACCURACY, argv=argv)
+    from endomeasure.features.boards import parse_board_spec
+    from endomeasure.simulate.preset import load_preset
+    from endomeasure.simulate.targets import target_from_preset
+
+    preset = load_preset("default")
+    board = target_from_preset("charuco", preset.targets["charuco"])
+    start = time.perf_counter()
+    runs = run_renders(preset, list(range(args.seeds)), refinement_variants(args.sweep))
+    seconds = time.perf_counter() - start
+    body = section_body(args, board, parse_board_spec(board.spec), runs, seconds, report)
     return report.finish({SECTION: body})
 
 

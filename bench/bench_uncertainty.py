@@ -14,17 +14,25 @@ area shows the cost of the UT's cross points (measurements of three or more poin
 
 from __future__ import annotations
 
+import argparse
 import time
+from collections.abc import Callable
 
 import numpy as np
 
 import endomeasure  # noqa: F401  (pins BLAS threads before numpy loads)
 from _common import BENCHMARKS, Report, Target, machine, median_time, script_parser
 from bench_models import raytrace_model
-from endomeasure.measure.predict import error_map, predict_measurement_error, volume_grid
+from endomeasure.measure.predict import (
+    ImageNoise,
+    error_map,
+    predict_measurement_error,
+    volume_grid,
+)
 from endomeasure.solvers.triangulate import triangulate
 
 SIGMA_PX = 0.05
+NOISE = ImageNoise(SIGMA_PX)
 MAP_POINTS = 10_000
 QUICK_MAP_POINTS, QUICK_RUNS = 1_000, 5
 UT_TARGET = Target("one measurement's UT, image noise", "<", 20.0, " ms", "issue 8")
@@ -34,73 +42,80 @@ UT_CALIBRATION_TARGET = Target(
 MAP_TARGET = Target("10,000-point error map", "<", 10.0, " s", "issue 8")
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = script_parser(__doc__)
     parser.add_argument(
         "--map-points", type=int, default=MAP_POINTS, help=f"error map points ({MAP_POINTS:,})"
     )
     args = parser.parse_args(argv)
-    report = Report("bench/bench_uncertainty.py", args, BENCHMARKS, argv=argv)
     if args.quick:
         args.map_points = min(args.map_points, QUICK_MAP_POINTS)
+    return args
 
-    def runs(n: int) -> int:
-        return min(n, QUICK_RUNS) if args.quick else n
 
-    model = raytrace_model()
-
+def time_one_measurement(model, runs: Callable[[int], int]) -> dict[str, float]:
+    """Median wall times (s) of one length's triangulation and its predictions, and of a
+    5-point area's; ``runs(n)``: the runs for a figure that asks for n."""
     # one 4 mm length at 20 mm
     pts = np.array([[-2.0, 0.0, 20.0], [2.0, 0.5, 20.5]])
     ql, qr = model.project(pts, "left").pixels, model.project(pts, "right").pixels
     free = model.free_mask
     param_cov = np.diag((1e-4 * np.maximum(np.abs(model.params[free]), 1.0)) ** 2)
-    t_tri = median_time(lambda: triangulate(model, ql, qr), runs=runs(50))
-    t_ut = median_time(
-        lambda: predict_measurement_error(model, "length", ql, qr, sigma=SIGMA_PX), runs=runs(50)
+    t = {"tri": median_time(lambda: triangulate(model, ql, qr), runs=runs(50))}
+    t["ut"] = median_time(
+        lambda: predict_measurement_error(model, "length", ql, qr, noise=NOISE), runs=runs(50)
     )
-    t_lin = median_time(
-        lambda: predict_measurement_error(model, "length", ql, qr, sigma=SIGMA_PX, method="linear"),
+    t["lin"] = median_time(
+        lambda: predict_measurement_error(model, "length", ql, qr, noise=NOISE, method="linear"),
         runs=runs(50),
     )
     # a 5-point area at 20 mm: 2L+1 = 41 sigma points and 190 cross points
     ang = np.linspace(0, 2 * np.pi, 5, endpoint=False)
     poly = np.stack([2 * np.cos(ang), 2 * np.sin(ang), 20.0 + 0.2 * np.cos(ang)], -1)
     al, ar = model.project(poly, "left").pixels, model.project(poly, "right").pixels
-    t_area = median_time(
-        lambda: predict_measurement_error(model, "area", al, ar, sigma=SIGMA_PX), runs=runs(20)
+    t["area"] = median_time(
+        lambda: predict_measurement_error(model, "area", al, ar, noise=NOISE), runs=runs(20)
     )
-    t_area_plain = median_time(
-        lambda: predict_measurement_error(model, "area", al, ar, sigma=SIGMA_PX, cross=None),
+    t["area_plain"] = median_time(
+        lambda: predict_measurement_error(model, "area", al, ar, noise=NOISE, cross=None),
         runs=runs(20),
     )
-    t_utc = median_time(
+    t["utc"] = median_time(
         lambda: predict_measurement_error(
-            model, "length", ql, qr, sigma=SIGMA_PX, param_cov=param_cov
+            model, "length", ql, qr, noise=NOISE, param_cov=param_cov
         ),
         runs=runs(10),
     )
+    return t
 
+
+def time_error_map(model, n_points: int) -> tuple[float, float, int]:
+    """Wall times (s) of an ``n_points`` error map and of its peer triangulation, and the
+    number of its templates visible in both halves."""
     # the volume map: an x-segment of 1 mm centred at grid points seen by both halves
     grid = volume_grid(model, np.linspace(10.0, 45.0, 15), n_u=60, n_v=45)
-    if grid.shape[0] < args.map_points:
+    if grid.shape[0] < n_points:
         raise SystemExit(f"the grid has only {grid.shape[0]} visible points")
-    centres = grid[np.linspace(0, grid.shape[0] - 1, args.map_points).astype(int)]
+    centres = grid[np.linspace(0, grid.shape[0] - 1, n_points).astype(int)]
     start = time.perf_counter()
-    em = error_map(model, centres, "x-segment", 1.0, sigma=SIGMA_PX)
+    em = error_map(model, centres, "x-segment", 1.0, noise=NOISE)
     t_map = time.perf_counter() - start
     # peer: triangulating the map's own noise-free correspondences once
     tp = centres[:, None, :] + np.array([[-0.5, 0, 0], [0.5, 0, 0]])
     pl, pr = model.project(tp, "left").pixels, model.project(tp, "right").pixels
     start = time.perf_counter()
     triangulate(model, pl, pr)
-    t_peer = time.perf_counter() - start
+    return t_map, time.perf_counter() - start, int(em.visible.sum())
 
+
+def section_body(t: dict[str, float], n_free: int, n_points: int, t_map: float,
+                 t_peer: float, n_visible: int, checks: tuple) -> str:  # fmt: skip
+    """The ``uncertainty`` section."""
+    t_tri, t_ut, t_lin, t_utc = t["tri"], t["ut"], t["lin"], t["utc"]
+    t_area, t_area_plain = t["area"], t["area_plain"]
+    ut, utc, map_ = checks
     L = 8
-    ut = report.check(UT_TARGET, t_ut * 1e3)
-    utc = report.check(UT_CALIBRATION_TARGET, t_utc * 1e3)
-    # the map target is about 10,000 points: another size is scaled to it (linear in n)
-    map_ = report.check(MAP_TARGET, t_map * MAP_POINTS / args.map_points)
-    body = f"""## Error prediction (`bench/bench_uncertainty.py`)
+    return f"""## Error prediction (`bench/bench_uncertainty.py`)
 
 Raytrace design of `tests/conftest.py`, sigma = {SIGMA_PX} px ({machine()}).
 
@@ -112,7 +127,7 @@ points in one batched triangulation), median of 50 runs:
 | ML triangulation of its 2 correspondences (peer) | {t_tri * 1e3:.2f} ms | 1.0 |
 | UT, image noise | {t_ut * 1e3:.2f} ms | {t_ut / t_tri:.1f} |
 | linear, image noise | {t_lin * 1e3:.2f} ms | {t_lin / t_tri:.1f} |
-| UT, image noise + calibration ({int(free.sum())} free parameters, median of 10) | {t_utc * 1e3:.1f} ms | {t_utc / t_tri:.1f} |
+| UT, image noise + calibration ({n_free} free parameters, median of 10) | {t_utc * 1e3:.1f} ms | {t_utc / t_tri:.1f} |
 | UT of a 5-point area, 41 sigma points + 190 cross points (median of 20) | {t_area * 1e3:.2f} ms | {t_area / t_tri:.1f} |
 | same, plain 41-point UT (`cross=None`) | {t_area_plain * 1e3:.2f} ms | {t_area_plain / t_tri:.1f} |
 
@@ -125,19 +140,37 @@ coordinates (the variance then is second-order exact,
 `endomeasure.solvers.uncertainty`); each moves at most two points, and only distinct
 points are triangulated.
 
-Error map: a 1 mm x-segment centred at each of {args.map_points:,} grid points seen by
-both halves (10-45 mm), UT with image noise ({em.visible.sum():,} templates visible in
+Error map: a 1 mm x-segment centred at each of {n_points:,} grid points seen by
+both halves (10-45 mm), UT with image noise ({n_visible:,} templates visible in
 both halves):
 
 | what | wall time | ratio |
 |---|---:|---:|
-| ML triangulation of the templates' {2 * args.map_points:,} correspondences (peer) | {t_peer:.2f} s | 1.0 |
+| ML triangulation of the templates' {2 * n_points:,} correspondences (peer) | {t_peer:.2f} s | 1.0 |
 | error map (projection + UT) | {t_map:.2f} s | {t_map / t_peer:.1f} |
 
 Targets ({UT_TARGET.source}): one measurement's UT under {UT_TARGET.limit:g} ms, with image
 noise ({ut}) and with the calibration too ({utc}); 10,000-point map under
 {MAP_TARGET.limit:g} s ({map_}).
 """  # noqa: E501
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    report = Report("bench/bench_uncertainty.py", args, BENCHMARKS, argv=argv)
+
+    def runs(n: int) -> int:
+        return min(n, QUICK_RUNS) if args.quick else n
+
+    model = raytrace_model()
+    t = time_one_measurement(model, runs)
+    t_map, t_peer, n_visible = time_error_map(model, args.map_points)
+    ut = report.check(UT_TARGET, t["ut"] * 1e3)
+    utc = report.check(UT_CALIBRATION_TARGET, t["utc"] * 1e3)
+    # the map target is about 10,000 points: another size is scaled to it (linear in n)
+    map_ = report.check(MAP_TARGET, t_map * MAP_POINTS / args.map_points)
+    n_free = int(model.free_mask.sum())
+    body = section_body(t, n_free, args.map_points, t_map, t_peer, n_visible, (ut, utc, map_))
     return report.finish({"uncertainty": body})
 
 
