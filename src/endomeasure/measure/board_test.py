@@ -349,15 +349,21 @@ class ZoneSummary(NamedTuple):
         ]
 
 
+def zone_index(z: np.ndarray | float, zone_mm: float) -> np.ndarray:
+    """The distance zone ``k`` of each depth ``z`` (mm): zones are ``[k w, (k+1) w)`` for
+    integers k, aligned to multiples of the width ``w = zone_mm`` so that they agree
+    between models and runs (a zone starts at ``k * zone_mm``)."""
+    return np.floor(np.asarray(z, dtype=np.float64) / zone_mm)
+
+
 def zone_groups(table: BoardTestTable, zone_mm: float, valid: np.ndarray):
     """The rows of each (kind, distance zone) of a table, in summary order.
 
-    Zones are ``[k w, (k+1) w)`` of the rows' mean z for integers k (aligned to multiples
-    of the width ``w = zone_mm``, so zones agree between models and runs). Yields
-    ``(kind, k, rows)`` with ``rows`` a boolean mask within ``valid``, kinds as in
-    :data:`BOARD_KINDS`, zones ascending.
+    Zones of the rows' mean z (:func:`zone_index`). Yields ``(kind, k, rows)`` with ``k``
+    the zone, ``rows`` a boolean mask within ``valid``, kinds as in :data:`BOARD_KINDS`,
+    zones ascending.
     """
-    zone = np.floor(table.z_mean / zone_mm)
+    zone = zone_index(table.z_mean, zone_mm)
     for kind in BOARD_KINDS:
         sel = valid & (table.kind == kind)
         for k in np.unique(zone[sel]):
