@@ -29,7 +29,7 @@ import numpy as np
 
 import endomeasure  # noqa: F401  (pins BLAS threads before numpy loads)
 from _common import BENCHMARKS, ROOT, Report, Target, machine, script_parser
-from endomeasure.measure.correspondence import find_match
+from endomeasure.measure.correspondence import MatchSettings, find_match
 from endomeasure.measure.epipolar import epipolar_curve
 from endomeasure.models import model_from_dict
 from endomeasure.simulate.targets import MetalCylinder
@@ -95,10 +95,10 @@ def main(argv: list[str] | None = None) -> int:
     model = model_from_dict(simulation["truth_model"])
     rng = np.random.default_rng(args.seed)
     modes = {
-        "`find_match`, warp `plane` (default)": dict(warp="plane"),
-        "`find_match`, warp `affine`": dict(warp="affine"),
-        "`find_match`, warp `none` (plain NCC)": dict(warp="none"),
-        "`find_match`, `plane`, no back search": dict(warp="plane", check_back=False),
+        "`find_match`, warp `plane` (default)": MatchSettings(warp="plane"),
+        "`find_match`, warp `affine`": MatchSettings(warp="affine"),
+        "`find_match`, warp `none` (plain NCC)": MatchSettings(warp="none"),
+        "`find_match`, `plane`, no back search": MatchSettings(warp="plane", check_back=False),
     }
     stats = {name: {"t": [], "marks": [], "random": [], "n_random": 0} for name in modes}
     peer = {"t": [], "marks": [], "random": []}
@@ -120,8 +120,8 @@ def main(argv: list[str] | None = None) -> int:
         for kind, lefts, rights in (("marks", mark_left, mark_right),
                                     ("random", random_left, random_right)):  # fmt: skip
             for q, truth in zip(lefts, rights, strict=True):
-                for name, options in modes.items():
-                    match, dt = timed(find_match, model, image, q, "left", **options)
+                for name, settings in modes.items():
+                    match, dt = timed(find_match, model, image, q, "left", settings)
                     stats[name]["t"].append(dt)
                     stats[name]["n_random"] += kind == "random"
                     if match.ok:

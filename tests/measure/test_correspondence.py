@@ -21,6 +21,7 @@ import pytest
 from endomeasure.conventions import Half, Status
 from endomeasure.errors import BadInputError
 from endomeasure.measure.correspondence import (
+    MatchSettings,
     MatchStatus,
     estimate_noise,
     find_match,
@@ -343,7 +344,9 @@ def test_warped_patches_beat_plain_ncc_through_the_prism(plane_scene, rng):
     _, _, truth, _ = true_matches(model, surface, pixels)
     rms = {}
     for warp in ("plane", "none"):
-        accepted, err = _errors(find_matches(model, image, pixels, "left", warp=warp), truth)
+        accepted, err = _errors(
+            find_matches(model, image, pixels, "left", MatchSettings(warp=warp)), truth
+        )
         rms[warp] = (np.sqrt(np.mean(np.sum(err**2, -1))), accepted.mean())
     assert rms["plane"][0] < 0.5 * rms["none"][0]
     assert rms["plane"][1] >= rms["none"][1]
@@ -353,7 +356,7 @@ def test_without_the_back_search_the_match_is_the_same(plane_scene, rng):
     _, model, surface, image = plane_scene
     pixel = _textured_points(model, surface, rng, count=1)[0]
     checked = find_match(model, image, pixel, "left")
-    unchecked = find_match(model, image, pixel, "left", check_back=False)
+    unchecked = find_match(model, image, pixel, "left", MatchSettings(check_back=False))
     assert checked.ok and unchecked.ok
     np.testing.assert_array_equal(unchecked.match, checked.match)
     assert np.isnan(unchecked.back_px) and checked.back_px < 1.0
@@ -422,7 +425,8 @@ def test_a_point_too_close_to_its_half_edge_is_refused(plane_scene):
 def test_a_point_outside_the_depth_range_is_refused(plane_scene, rng):
     _, model, surface, image = plane_scene
     pixel = _textured_points(model, surface, rng, count=1)[0]
-    m = find_match(model, image, pixel, "left", depth_range_mm=(20.0, 60.0))  # plane at ~11 mm
+    settings = MatchSettings(depth_range_mm=(20.0, 60.0))  # the plane is at ~11 mm
+    m = find_match(model, image, pixel, "left", settings)
     assert m.status is MatchStatus.OUTSIDE or m.status is MatchStatus.LOW_SCORE
     assert not m.ok and np.isnan(m.match).all()
 
@@ -437,11 +441,11 @@ def test_bad_inputs_are_domain_errors(pinhole_model):
     with pytest.raises(BadInputError, match="not in the left half"):
         find_match(pinhole_model, image, [400, 100], "left")
     with pytest.raises(BadInputError, match="patch size"):
-        find_match(pinhole_model, image, [100, 100], "left", patch=14)
+        MatchSettings(patch=14)
     with pytest.raises(BadInputError, match="warp"):
-        find_match(pinhole_model, image, [100, 100], "left", warp="perspective")
+        MatchSettings(warp="perspective")
     with pytest.raises(BadInputError, match="depth range"):
-        find_match(pinhole_model, image, [100, 100], "left", depth_range_mm=(0.0, 10.0))
+        MatchSettings(depth_range_mm=(0.0, 10.0))
     with pytest.raises(BadInputError, match="two coordinates"):
         find_match(pinhole_model, image, [100, 100, 1], "left")
     with pytest.raises(BadInputError, match="NaN"):

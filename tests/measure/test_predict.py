@@ -12,6 +12,7 @@ from endomeasure.errors import BadInputError
 from endomeasure.measure.kinds import KINDS, area, point_line
 from endomeasure.measure.predict import (
     TEMPLATES,
+    ImageNoise,
     error_map,
     predict_measurement_error,
     template_points,
@@ -172,7 +173,13 @@ def random_measurement(model, rng, kind, sigma=DETECTION_NOISE_PX):
         if min(spans(kind, points)) < SPAN_OVER_DEPTH_NOISE * noise:
             continue
         mc = predict_measurement_error(
-            model, kind, *pair, sigma=sigma, method="mc", n_samples=SCREEN_SAMPLES, seed=5
+            model,
+            kind,
+            *pair,
+            noise=ImageNoise(sigma),
+            method="mc",
+            n_samples=SCREEN_SAMPLES,
+            seed=5,
         )
         index = 100.0 * (abs(mc.bias[0]) + Z95 * mc.std[0]) / abs(mc.value[0])
         if mc.n_invalid[0] == 0 and index <= DEFAULT_WARN_PERCENT:
@@ -183,9 +190,9 @@ def compare_ut_with_monte_carlo(model, rng, kind, count, sigma=DETECTION_NOISE_P
     pairs = [random_measurement(model, rng, kind, sigma) for _ in range(count)]
     ql = np.array([p[0] for p in pairs])
     qr = np.array([p[1] for p in pairs])
-    ut = predict_measurement_error(model, kind, ql, qr, sigma=sigma)
+    ut = predict_measurement_error(model, kind, ql, qr, noise=ImageNoise(sigma))
     mc = predict_measurement_error(
-        model, kind, ql, qr, sigma=sigma, method="mc", n_samples=MC_SAMPLES, seed=11
+        model, kind, ql, qr, noise=ImageNoise(sigma), method="mc", n_samples=MC_SAMPLES, seed=11
     )
     assert np.all(ut.n_invalid == 0) and np.all(mc.n_invalid == 0)
     np.testing.assert_allclose(ut.std, mc.std, rtol=STD_TOL)
@@ -214,8 +221,10 @@ def test_linear_and_ut_agree_where_the_measurement_is_nearly_linear(any_model):
     pts = np.array([[-2.0, 0.0, 15.0], [2.0, 0.5, 15.3]])
     ql = any_model.project(pts, "left").pixels
     qr = any_model.project(pts, "right").pixels
-    ut = predict_measurement_error(any_model, "length", ql, qr, sigma=0.01)
-    lin = predict_measurement_error(any_model, "length", ql, qr, sigma=0.01, method="linear")
+    ut = predict_measurement_error(any_model, "length", ql, qr, noise=ImageNoise(0.01))
+    lin = predict_measurement_error(
+        any_model, "length", ql, qr, noise=ImageNoise(0.01), method="linear"
+    )
     assert ut.std[0] == pytest.approx(lin.std[0], rel=0.02)
     assert abs(ut.bias[0]) < 0.05 * ut.std[0]
     assert ut.value[0] == pytest.approx(np.linalg.norm(pts[1] - pts[0]), abs=1e-7)
@@ -231,7 +240,8 @@ def test_correlation_between_the_halves_lowers_the_predicted_std(raytrace_model)
     qr = raytrace_model.project(pts, "right").pixels
 
     def std(**rho):
-        return predict_measurement_error(raytrace_model, "length", ql, qr, sigma=0.05, **rho).std[0]
+        noise = ImageNoise(0.05, **rho)
+        return predict_measurement_error(raytrace_model, "length", ql, qr, noise=noise).std[0]
 
     assert std(rho_images=0.0) > std(rho_images=0.5) > std(rho_images=0.9)
     assert std(rho_points=0.0) < std(rho_points=0.5) < std(rho_points=0.9)
@@ -245,11 +255,15 @@ def test_calibration_budget(raytrace_model):
     free = model.free_mask
     scale = 1e-4 * np.maximum(np.abs(model.params[free]), 1.0)
     param_cov = np.diag(scale**2)
-    both = predict_measurement_error(model, "length", ql, qr, sigma=0.05, param_cov=param_cov)
-    image = predict_measurement_error(model, "length", ql, qr, sigma=0.05)
-    calib = predict_measurement_error(model, "length", ql, qr, sigma=0.0, param_cov=param_cov)
+    both = predict_measurement_error(
+        model, "length", ql, qr, noise=ImageNoise(0.05), param_cov=param_cov
+    )
+    image = predict_measurement_error(model, "length", ql, qr, noise=ImageNoise(0.05))
+    calib = predict_measurement_error(
+        model, "length", ql, qr, noise=ImageNoise(0.0), param_cov=param_cov
+    )
     lin = predict_measurement_error(
-        model, "length", ql, qr, sigma=0.05, param_cov=param_cov, method="linear"
+        model, "length", ql, qr, noise=ImageNoise(0.05), param_cov=param_cov, method="linear"
     )
     assert set(both.parts) == {"image", "calibration"}
     assert both.parts["image"][1][0] == pytest.approx(image.std[0], rel=0.01)
@@ -266,7 +280,7 @@ def test_error_map_of_an_x_segment(raytrace_model):
     centres = volume_grid(model, np.array([12.0, 24.0, 36.0]), n_u=12, n_v=9)
     assert centres.shape[0] > 60
     assert np.all(model.project(centres, "right").status == Status.OK)
-    em = error_map(model, centres, "x-segment", 1.0, sigma=0.05)
+    em = error_map(model, centres, "x-segment", 1.0, noise=ImageNoise(0.05))
     assert em.true == pytest.approx(1.0)
     vis = em.visible
     assert vis.sum() > 0.8 * centres.shape[0]
@@ -291,10 +305,65 @@ def test_templates_have_their_true_values(template):
 def test_bad_requests_are_refused(raytrace_model):
     q = np.zeros((2, 2))
     with pytest.raises(BadInputError, match="cannot be measured from 2 points"):
-        predict_measurement_error(raytrace_model, "depth", q, q, sigma=0.1)
+        predict_measurement_error(raytrace_model, "depth", q, q, noise=ImageNoise(0.1))
     with pytest.raises(BadInputError, match="parameter covariance must be"):
-        predict_measurement_error(raytrace_model, "length", q, q, sigma=0.1, param_cov=np.eye(3))
+        predict_measurement_error(
+            raytrace_model, "length", q, q, noise=ImageNoise(0.1), param_cov=np.eye(3)
+        )
     with pytest.raises(BadInputError, match="unknown map template"):
         template_points("circle", np.zeros((1, 3)))
     with pytest.raises(BadInputError, match="unknown measurement kind"):
-        predict_measurement_error(raytrace_model, "volume", q, q, sigma=0.1)
+        predict_measurement_error(raytrace_model, "volume", q, q, noise=ImageNoise(0.1))
+
+
+# ----- the image noise -------------------------------------------------------------------------
+
+
+def test_image_noise_of_a_plain_sigma_is_uncorrelated_and_given():
+    noise = ImageNoise(0.05)
+    assert (noise.sigma, noise.source, noise.rho_images, noise.rho_points) == (
+        0.05, "given", 0.0, 0.0,
+    )  # fmt: skip
+    assert noise.pixel_std is None
+    assert ImageNoise([0.04, 0.06]).sigma == (0.04, 0.06)
+    cov, blocks = noise.covariance(2)
+    np.testing.assert_array_equal(cov, np.diag(np.full(8, 0.05**2)))
+    assert blocks == {"image": slice(0, 8)}
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ({"sigma": -0.1}, "non-negative"),
+        ({"sigma": (0.1, 0.2, 0.3)}, "pair"),
+        ({"sigma": 0.1, "rho_images": 1.5}, "rho-images"),
+        ({"sigma": 0.1, "rho_points": float("nan")}, "rho-points"),
+        ({"sigma": 0.1, "pixel_std": [0.1, 0.1]}, "shape"),
+        ({"sigma": 0.1, "pixel_std": [[0.1, -0.1]]}, "non-negative"),
+        ({"sigma": 0.2, "pixel_std": [[0.1, 0.1]]}, "largest"),
+        ({"sigma": 0.1, "pixel_std": [[0.1, 0.0]], "rho_images": 0.5}, "no correlations"),
+    ],
+)
+def test_image_noise_refuses_what_it_cannot_be(arguments, message):
+    with pytest.raises(BadInputError, match=message):
+        ImageNoise(**arguments)
+
+
+def test_per_point_noise_with_equal_values_is_the_plain_sigma(raytrace_model):
+    # independent oracle: an equal, uncorrelated per-point std is the same covariance as
+    # the plain sigma, so the prediction is the same to the last bit
+    pts = np.array([[-2.0, 0.0, 15.0], [2.0, 1.0, 16.0]])
+    ql = raytrace_model.project(pts, "left").pixels
+    qr = raytrace_model.project(pts, "right").pixels
+    per_point = ImageNoise.per_point(np.full((2, 2), 0.05), "test")
+    assert per_point.sigma == 0.05 and per_point == ImageNoise.per_point([[0.05] * 2] * 2, "test")
+    a = predict_measurement_error(raytrace_model, "length", ql, qr, noise=per_point)
+    b = predict_measurement_error(raytrace_model, "length", ql, qr, noise=ImageNoise(0.05))
+    np.testing.assert_array_equal(a.std, b.std)
+    np.testing.assert_array_equal(a.bias, b.bias)
+    exact_left = ImageNoise.per_point([[0.0, 0.05], [0.0, 0.05]], "test")
+    c = predict_measurement_error(raytrace_model, "length", ql, qr, noise=exact_left)
+    assert 0.0 < c.std[0] < a.std[0]
+    with pytest.raises(BadInputError, match="for 3 points"):
+        predict_measurement_error(raytrace_model, "length", ql, qr,
+                                  noise=ImageNoise.per_point(np.zeros((3, 2)), "test"))  # fmt: skip

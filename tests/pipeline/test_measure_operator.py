@@ -164,7 +164,7 @@ def test_matched_points_uncertainty_is_the_match_precision(scene_session):
             slope = (length(qr + step) - length(qr - step)) / (2 * FD_STEP_PX)
             variance += (slope * point.match.precision_px) ** 2
     assert report.error.std_image == pytest.approx(np.sqrt(variance), rel=LINEAR_REL_TOL)
-    assert report.value == pytest.approx(length(qr), abs=1e-9)
+    assert report.error.value == pytest.approx(length(qr), abs=1e-9)
 
     given = measure_points(
         scene_session, "raytrace", SCENE, left, None, "length", sigma=0.1, store=False

@@ -219,8 +219,9 @@ def next_measurement_name(names: Sequence[str]) -> str:
     return f"m{max(numbers, default=0) + 1:03d}"
 
 
-def _match_arrays(matches, pixel_std) -> dict[str, np.ndarray]:
-    """What a measurement keeps of an automatic search (nothing without one)."""
+def _match_arrays(matches, noise) -> dict[str, np.ndarray]:
+    """What a measurement keeps of an automatic search (nothing without one), with the
+    per-point image noise (``pixel_std``) of ``noise`` when it has one."""
     if matches is None:
         return {}
     out = {
@@ -228,16 +229,14 @@ def _match_arrays(matches, pixel_std) -> dict[str, np.ndarray]:
         "match_score": np.array([m.score for m in matches]),
         "match_precision": np.array([m.precision_px for m in matches]),
     }
-    if pixel_std is not None:
-        out["pixel_std"] = pixel_std
+    if noise.pixel_std is not None:
+        out["pixel_std"] = np.asarray(noise.pixel_std, dtype=np.float64)
     return out
 
 
-def measurement_record(name: str, report, pixel_std: np.ndarray | None = None) -> Record:
-    """The ``measurement`` record of a ``measure`` report (its points and predicted error).
-
-    ``pixel_std`` (n, 2), px: the per-point input noise of a matched measurement.
-    """
+def measurement_record(name: str, report) -> Record:
+    """The ``measurement`` record of a ``measure`` report (its points and predicted error;
+    for a matched measurement also its per-point input noise, ``pixel_std`` (n, 2), px)."""
     points = report.points
     matches = [p.match for p in points] if any(p.match is not None for p in points) else None
     e, unit = report.error, report.unit
@@ -257,8 +256,7 @@ def measurement_record(name: str, report, pixel_std: np.ndarray | None = None) -
             "relative_percent": e.relative_percent,
             "warn_percent": float(report.warn_percent),
             "warning": report.warning,
-            "sigma_px": report.noise.sigma,
-            "sigma_source": report.noise.source,
+            **report.noise.to_dict(correlations=False),
             "method": report.method,
             "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         },
@@ -268,7 +266,7 @@ def measurement_record(name: str, report, pixel_std: np.ndarray | None = None) -
             "points": np.array([p.xyz for p in points], dtype=np.float64),
             "ray_gap": np.array([p.gap_mm for p in points], dtype=np.float64),
             "reprojection_rms": np.array([p.rms_px for p in points], dtype=np.float64),
-            **_match_arrays(matches, pixel_std),
+            **_match_arrays(matches, report.noise),
         },
         units={
             **dict.fromkeys(("value", "bias", "std", "std_image", "std_calibration", "ci95"), unit),
@@ -412,15 +410,6 @@ def board_test_fields(record: Record) -> dict[str, Any]:
 # ----- prediction records -----------------------------------------------------------------------
 
 
-def _noise_attrs(noise) -> dict[str, Any]:
-    return {
-        "sigma_px": noise.sigma,
-        "sigma_source": noise.source,
-        "rho_images": float(noise.rho_images),
-        "rho_points": float(noise.rho_points),
-    }
-
-
 def board_prediction_record(report) -> Record:
     """The ``prediction`` record ``board-test-<model>`` of a ``BoardPredictionReport``."""
     return Record(
@@ -430,7 +419,7 @@ def board_prediction_record(report) -> Record:
             "mode": "board-test",
             "model": report.model,
             "method": report.method,
-            **_noise_attrs(report.noise),
+            **report.noise.to_dict(),
             "calibration": bool(report.calibration),
             "zone_mm": report.zone_mm,
             "within_band": report.within_band,

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Iterable, Mapping
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -37,6 +37,9 @@ from endomeasure.measure.board_test import (
     zone_groups,
     zone_summary,
 )
+
+if TYPE_CHECKING:
+    from endomeasure.measure.predict import ImageNoise
 
 __all__ = [
     "BAND_SIGMAS",
@@ -262,16 +265,22 @@ def ideal_board_pixels(model, grid: np.ndarray, xyz: np.ndarray, ql, qr):
 
 
 def board_predictions(
-    bt: ModelBoardTest, model, grids: Mapping[str, np.ndarray], *, at="board", **propagation
+    bt: ModelBoardTest,
+    model,
+    grids: Mapping[str, np.ndarray],
+    noise: ImageNoise,
+    *,
+    param_cov: np.ndarray | None = None,
+    at: str = "board",
+    **options,
 ) -> dict:
     """Predicted bias, std and its parts for every row of a board test's table.
 
     ``grids``: each board's corner coordinates by corner id (N, 3), mm, board frame (the
     ``object_points`` of its parsed spec), for ``at='board'``.
 
-    ``propagation``: the noise and method keywords of
-    :func:`~endomeasure.measure.predict.predict_measurement_error` (``noise`` or
-    ``sigma``, ``param_cov``, ``method``, ...).
+    ``noise``, ``param_cov`` and ``options`` (``method``, ...): as in
+    :func:`~endomeasure.measure.predict.predict_measurement_error`.
 
     ``at='board'`` predicts at the pixels of the ideal board at its estimated pose
     (:func:`ideal_board_pixels`), ``at='detections'`` at the detected pixels. The first
@@ -303,7 +312,9 @@ def board_predictions(
         if rows.size == 0:
             continue
         ql, qr = stencil_pixels(t, images, kind)
-        pred = predict_measurement_error(model, measure_kind, ql, qr, **propagation)
+        pred = predict_measurement_error(
+            model, measure_kind, ql, qr, noise=noise, param_cov=param_cov, **options
+        )
         out["bias"][rows] = pred.bias
         out["std"][rows] = pred.std
         out["value"][rows] = pred.value
@@ -311,7 +322,7 @@ def board_predictions(
             out["std_image"][rows] = pred.parts["image"][1]
         if "calibration" in pred.parts:
             out["std_calibration"][rows] = pred.parts["calibration"][1]
-        elif propagation.get("param_cov") is None:
+        elif param_cov is None:
             out["std_image"][rows] = pred.std
     return out
 

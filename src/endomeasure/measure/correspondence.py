@@ -1283,8 +1283,7 @@ def find_matches(
     image: np.ndarray,
     pixels: np.ndarray,
     half: Half | str,
-    settings: MatchSettings | None = None,
-    **options: Any,
+    settings: MatchSettings = MatchSettings(),  # noqa: B008 (immutable)
 ) -> list[Match]:
     """Find, for each point of one half, the point of the other half that shows the same
     surface point (the search is described in the module notes).
@@ -1300,11 +1299,8 @@ def find_matches(
     half : Half or {'left', 'right'}
         The half the points are in.
     settings : MatchSettings, optional
-        How to search and when to refuse; the defaults of :class:`MatchSettings` if
-        not given.
-    **options
-        Fields of :class:`MatchSettings` (``patch=21``, ``warp='none'``, ...) that
-        replace those of ``settings``.
+        How to search and when to refuse (e.g. ``MatchSettings(patch=21)``); the
+        defaults of :class:`MatchSettings` if not given.
 
     Returns
     -------
@@ -1319,9 +1315,6 @@ def find_matches(
         settings.
     """
     half = Half.parse(half)
-    settings = (
-        MatchSettings(**options) if settings is None else dataclasses.replace(settings, **options)
-    )
     image = _grey(image, model)
     points = np.asarray(pixels, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
@@ -1343,12 +1336,11 @@ def find_match(
     image: np.ndarray,
     pixel: np.ndarray,
     half: Half | str,
-    settings: MatchSettings | None = None,
-    **options: Any,
+    settings: MatchSettings = MatchSettings(),  # noqa: B008 (immutable)
 ) -> Match:
     """The match of one point, ``pixel`` (array_like, shape (2,), px, full-image
     coordinates in ``half``); the rest as :func:`find_matches`."""
     pixel = np.asarray(pixel, dtype=np.float64)
     if pixel.shape != (2,):
         raise BadInputError(f"a point needs two coordinates (u, v), got shape {pixel.shape}")
-    return find_matches(model, image, pixel[None], half, settings, **options)[0]
+    return find_matches(model, image, pixel[None], half, settings)[0]

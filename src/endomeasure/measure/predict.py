@@ -59,29 +59,76 @@ Z95 = 1.959963984540054
 
 @dataclasses.dataclass(frozen=True)
 class ImageNoise:
-    """The image noise a prediction assumes: its size, where it comes from, correlations.
+    """The image noise a prediction assumes: its size, where it comes from, its
+    correlations, or an independent standard deviation per point.
+
+    ``ImageNoise(0.05)`` is 0.05 px on every coordinate, uncorrelated, "given";
+    :meth:`per_point` builds the per-point form. Validated on construction.
 
     Attributes
     ----------
     sigma : float or (float, float), px
-        Standard deviation of every pixel coordinate, or of u and v.
+        Standard deviation of every pixel coordinate, or of u and v; with
+        ``pixel_std``, its largest value (what a report quotes).
     source : str
-        Where ``sigma`` comes from (``given``, ``calibration residuals``, ...).
+        Where the noise comes from (``given``, ``calibration residuals``, ...).
     rho_images, rho_points : float
         Correlation of one point's errors in the two halves, and of different points'
         (:func:`~endomeasure.solvers.uncertainty.pixel_covariance`).
+    pixel_std : tuple of (float, float) per point, px, or None
+        Instead of ``sigma`` and the correlations: an independent standard deviation per
+        point for its left and its right pixel (both coordinates), e.g. an exact clicked
+        pixel (0) and an automatic match at its own precision.
     """
 
     sigma: float | tuple[float, float]
     source: str = "given"
     rho_images: float = 0.0
     rho_points: float = 0.0
+    pixel_std: tuple[tuple[float, float], ...] | None = None
 
     def __post_init__(self):
+        std = None if self.pixel_std is None else np.asarray(self.pixel_std, dtype=np.float64)
+        if std is not None and (std.ndim != 2 or std.shape[0] == 0 or std.shape[1] != 2):
+            raise BadInputError(f"pixel_std must have shape (n, 2), got {std.shape}")
+        if std is not None and not (np.all(np.isfinite(std)) and np.all(std >= 0)):
+            raise BadInputError("pixel_std must be non-negative numbers of pixels")
         object.__setattr__(self, "sigma", checked_sigma(self.sigma))
         for name, rho in (("rho-images", self.rho_images), ("rho-points", self.rho_points)):
             if not (math.isfinite(rho) and -1.0 <= rho <= 1.0):
                 raise BadInputError(f"--{name} must lie in [-1, 1], not {rho}")
+        if std is None:
+            return
+        # one description of the noise: the per-point form is uncorrelated, and its sigma
+        # is only the largest value, for the report
+        if self.rho_images != 0 or self.rho_points != 0:
+            raise BadInputError("a per-point image noise (pixel_std) has no correlations")
+        if self.sigma != float(std.max()):
+            raise BadInputError(
+                "the sigma of a per-point image noise is its largest pixel_std",
+                hint="build it with ImageNoise.per_point",
+            )
+        object.__setattr__(self, "pixel_std", tuple(map(tuple, std.tolist())))
+
+    @classmethod
+    def per_point(cls, pixel_std, source: str) -> ImageNoise:
+        """Independent noise of each point's left and right pixel, ``pixel_std`` (n, 2),
+        px (see the class attributes)."""
+        std = np.asarray(pixel_std, dtype=np.float64)
+        return cls(float(np.max(std, initial=0.0)), source, pixel_std=std)
+
+    def covariance(self, n_points: int, param_cov: np.ndarray | None = None):
+        """The input covariance of ``n_points`` points and its blocks
+        (:func:`~endomeasure.solvers.uncertainty.input_covariance`)."""
+        if self.pixel_std is None:
+            return input_covariance(n_points, self.sigma, self.rho_images, self.rho_points,
+                                    param_cov)  # fmt: skip
+        if len(self.pixel_std) != n_points:
+            raise BadInputError(
+                f"the image noise has a pixel_std for {len(self.pixel_std)} points, the "
+                f"measurement has {n_points}"
+            )
+        return input_covariance(n_points, None, param_cov=param_cov, pixel_std=self.pixel_std)
 
     def to_dict(self, correlations: bool = True) -> dict[str, Any]:
         """The report fields ``sigma_px``, ``sigma_source`` (and ``rho_images``,
@@ -183,11 +230,7 @@ def predict_measurement_error(
     pixels_left: np.ndarray,
     pixels_right: np.ndarray,
     *,
-    noise: ImageNoise | None = None,
-    sigma: float | tuple[float, float] | None = None,
-    rho_images: float = 0.0,
-    rho_points: float = 0.0,
-    pixel_std: np.ndarray | None = None,
+    noise: ImageNoise,
     param_cov: np.ndarray | None = None,
     method: str = "ut",
     **options,
@@ -201,11 +244,8 @@ def predict_measurement_error(
         Measurement kind.
     pixels_left, pixels_right : ndarray, shape (n, 2) or (M, n, 2), px
         The measurements' points in each half.
-    noise : ImageNoise, optional
-        The image noise; or give its parts ``sigma``, ``rho_images``, ``rho_points``
-        (see :func:`~endomeasure.solvers.uncertainty.pixel_covariance`).
-    pixel_std : ndarray, shape (n, 2), px, optional
-        Per-point standard deviations instead of ``sigma`` (see :func:`input_covariance`).
+    noise : ImageNoise
+        The image noise of the pixels (e.g. ``ImageNoise(0.05)``).
     param_cov : ndarray, shape (F, F), optional
         Covariance of the model's free parameters (F = ``model.free_mask.sum()``);
         without it only image noise is propagated.
@@ -221,8 +261,6 @@ def predict_measurement_error(
     Propagation
         Shape (M,), or (1,) for a single measurement.
     """
-    if noise is not None:
-        sigma, rho_images, rho_points = noise.sigma, noise.rho_images, noise.rho_points
     ql = np.asarray(pixels_left, dtype=np.float64)
     if ql.ndim == 2:
         ql = ql[None]
@@ -236,7 +274,7 @@ def predict_measurement_error(
                 f"model's free parameters, got {np.shape(param_cov)}"
             )
     f = measurement_function(model, kind, n, with_params=param_cov is not None)
-    cov, blocks = input_covariance(n, sigma, rho_images, rho_points, param_cov, pixel_std=pixel_std)
+    cov, blocks = noise.covariance(n, param_cov)
     return propagate(f, f.inputs(ql, pixels_right), cov, method, blocks=blocks, **options)
 
 
@@ -331,10 +369,7 @@ def error_map(
     template: str = "x-segment",
     size_mm: float = 1.0,
     *,
-    noise: ImageNoise | None = None,
-    sigma: float | tuple[float, float] | None = None,
-    rho_images: float = 0.0,
-    rho_points: float = 0.0,
+    noise: ImageNoise,
     param_cov: np.ndarray | None = None,
     method: str = "ut",
     **options,
@@ -351,7 +386,7 @@ def error_map(
         One of :data:`TEMPLATES`.
     size_mm : float
         Template size (segment length, square side).
-    noise (or sigma, rho_images, rho_points), param_cov, method, **options
+    noise, param_cov, method, **options
         As in :func:`predict_measurement_error`.
 
     Returns
@@ -373,9 +408,8 @@ def error_map(
     std_cal = np.full(K, np.nan)
     if visible.any():
         res = predict_measurement_error(
-            model, kind, pl.pixels[visible], pr.pixels[visible], noise=noise, sigma=sigma,
-            rho_images=rho_images, rho_points=rho_points, param_cov=param_cov,
-            method=method, **options,
+            model, kind, pl.pixels[visible], pr.pixels[visible], noise=noise,
+            param_cov=param_cov, method=method, **options,
         )  # fmt: skip
         value[visible], bias[visible], std[visible] = res.value, res.bias, res.std
         if "image" in res.parts:

@@ -59,24 +59,6 @@ from endomeasure.errors import BadInputError, GoalNotMetError
 if TYPE_CHECKING:
     from endomeasure.measure.board_runs import ModelBoardTest
 
-_MOVED = {
-    "CalibratedModel": "endomeasure.io.records",
-    "load_calibrated_model": "endomeasure.io.records",
-    "BoardSet": "endomeasure.measure.board_runs",
-    "ModelBoardTest": "endomeasure.measure.board_runs",
-    "run_board_test": "endomeasure.measure.board_runs",
-}
-"""Names that moved below the pipeline, still importable from here (loaded on use)."""
-
-
-def __getattr__(name: str):
-    if name in _MOVED:
-        import importlib
-
-        return getattr(importlib.import_module(_MOVED[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 __all__ = [
     "DEFAULT_PATCH_PX",
     "DEFAULT_WARN_PERCENT",
@@ -143,9 +125,9 @@ class MatchRefusedError(GoalNotMetError):
 
 def _match_other_half(model, image: np.ndarray, query: np.ndarray, half: Half, patch: int) -> list:
     """Matches in the other half of operator points given in ``half``."""
-    from endomeasure.measure.correspondence import find_matches
+    from endomeasure.measure.correspondence import MatchSettings, find_matches
 
-    return find_matches(model, image, query, half, patch=patch)
+    return find_matches(model, image, query, half, MatchSettings(patch=patch))
 
 
 def _refusal(matches: list, half: Half, plot) -> MatchRefusedError:
@@ -210,18 +192,6 @@ class MeasureReport:
     noise: Any  # ImageNoise
     method: str
     plot: str | None = None
-
-    @property
-    def value(self) -> float:
-        return self.error.value
-
-    @property
-    def bias(self) -> float:
-        return self.error.bias
-
-    @property
-    def std(self) -> float:
-        return self.error.std
 
     @property
     def matched(self) -> bool:
@@ -344,8 +314,7 @@ def _triangulated(model, model_name: str, ql, qr):
 
 
 def _predicted(cm, kind: str, value: float, ql, qr, sigma, matches, query_half: Half):
-    """The predicted error, the image noise it assumed and the per-point pixel std (or
-    None) of a measurement."""
+    """The predicted error of a measurement and the image noise it assumed."""
     from endomeasure.measure.predict import ImageNoise, PredictedError, image_noise
     from endomeasure.measure.predict import predict_measurement_error as predict
 
@@ -353,16 +322,12 @@ def _predicted(cm, kind: str, value: float, ql, qr, sigma, matches, query_half: 
         # the clicked pixel defines the point; its match carries the search's precision
         pixel_std = np.zeros((ql.shape[0], 2))
         pixel_std[:, 1 if query_half is Half.LEFT else 0] = [m.precision_px for m in matches]
-        noise = ImageNoise(
-            float(pixel_std.max()), f"match precision, {query_half.label} pixels exact"
-        )
-        pred = predict(cm.model, kind, ql, qr, pixel_std=pixel_std, param_cov=cm.param_cov)
+        noise = ImageNoise.per_point(pixel_std, f"match precision, {query_half.label} pixels exact")
     else:
-        pixel_std = None
         noise = image_noise(sigma, cm.sigma_px, f"model {cm.name!r}")
-        pred = predict(cm.model, kind, ql, qr, noise=noise, param_cov=cm.param_cov, method=METHOD)
+    pred = predict(cm.model, kind, ql, qr, noise=noise, param_cov=cm.param_cov, method=METHOD)
     error = PredictedError.of(pred)
-    return dataclasses.replace(error, value=value), noise, pixel_std
+    return dataclasses.replace(error, value=value), noise
 
 
 def measure_points(
@@ -428,8 +393,7 @@ def measure_points(
     ql, qr, matches, written = _pixel_pairs(cm.model, request, image_pixels, patch, plot)
     tri = _triangulated(cm.model, model_name, ql, qr)
     value = float(request.spec.function(validate(kind, tri.points)))
-    error, noise, pixel_std = _predicted(cm, kind, value, ql, qr, sigma, matches,
-                                         request.query_half)  # fmt: skip
+    error, noise = _predicted(cm, kind, value, ql, qr, sigma, matches, request.query_half)
     measured = [
         MeasuredPoint(
             tuple(map(float, ql[i])),
@@ -448,7 +412,7 @@ def measure_points(
         with edit_session(session) as writer:
             name = records.next_measurement_name(writer.record_names(records.MEASUREMENT_RECORD))
             report = dataclasses.replace(report, record=name)
-            writer.write_record(records.measurement_record(name, report, pixel_std))
+            writer.write_record(records.measurement_record(name, report))
     return report
 
 

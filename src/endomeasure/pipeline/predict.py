@@ -27,18 +27,6 @@ import numpy as np
 
 from endomeasure.errors import BadInputError
 
-_MOVED = {"BAND_SIGMAS": "BAND_SIGMAS", "_zone_rows": "prediction_zones"}
-"""Names that moved to :mod:`endomeasure.measure.board_runs`, still importable from here."""
-
-
-def __getattr__(name: str):
-    if name in _MOVED:
-        from endomeasure.measure import board_runs
-
-        return getattr(board_runs, _MOVED[name])
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 __all__ = [
     "DEFAULT_DEPTHS_MM",
     "DEFAULT_ZONE_MM",
@@ -69,13 +57,18 @@ class NoiseAssumptions:
     choices the three modes share (``--sigma``, ``--rho-images``, ``--rho-points``,
     ``--method``, ``--no-calibration``, ``--samples``).
 
+    The image noise itself is an :class:`~endomeasure.measure.predict.ImageNoise`, which
+    :meth:`image_noise` builds (and validates) once the model, and so the residual sigma
+    a missing ``sigma`` stands for, is known.
+
     Attributes
     ----------
     sigma : float, (float, float) or None
         Image noise, px: one number, or u and v; None takes the calibrated model's
         residual sigma.
     rho_images, rho_points : float
-        Correlations of one point's errors in the two halves, and of different points'.
+        Correlations of one point's errors in the two halves, and of different points'
+        (checked by ``ImageNoise``).
     method : {'ut', 'linear', 'mc'}
     calibration : bool
         Whether the calibration covariance joins the input (when the model has one).
@@ -96,9 +89,6 @@ class NoiseAssumptions:
     def __post_init__(self):
         from endomeasure.solvers.uncertainty import METHODS
 
-        for name, rho in (("rho-images", self.rho_images), ("rho-points", self.rho_points)):
-            if not (math.isfinite(rho) and -1.0 <= rho <= 1.0):
-                raise BadInputError(f"--{name} must lie in [-1, 1], not {rho}")
         if self.method not in METHODS:
             raise BadInputError(
                 f"unknown method {self.method!r}", hint=f"use one of {', '.join(METHODS)}"
@@ -113,17 +103,15 @@ class NoiseAssumptions:
         return image_noise(self.sigma, residual, what, rho_images=self.rho_images,
                            rho_points=self.rho_points)  # fmt: skip
 
-    def propagation(self, noise, param_cov) -> dict[str, Any]:
-        """Keyword arguments of the predictors (:mod:`endomeasure.measure.predict`)."""
+    def propagation(self, param_cov) -> dict[str, Any]:
+        """The predictors' keywords besides the image noise
+        (:func:`~endomeasure.measure.predict.predict_measurement_error`): ``param_cov``
+        (None without ``calibration``), ``method`` and its Monte Carlo options."""
         options: dict[str, Any] = {}
         if self.method == "mc":
             options = {"n_samples": int(self.n_samples or MC_SAMPLES), "seed": int(self.seed)}
-        return dict(
-            noise=noise,
-            param_cov=param_cov if self.calibration else None,
-            method=self.method,
-            **options,
-        )
+        cov = param_cov if self.calibration else None
+        return {"param_cov": cov, "method": self.method, **options}
 
 
 # ----- board test --------------------------------------------------------------------------------
@@ -160,14 +148,15 @@ class BoardPredictionReport:
         }
 
 
-def board_predictions(bt, model, *, at="board", **propagation) -> dict[str, np.ndarray]:
+def board_predictions(bt, model, noise, **options) -> dict[str, np.ndarray]:
     """:func:`endomeasure.measure.board_runs.board_predictions` with the boards' corner
-    grids parsed from the board test's specs."""
+    grids parsed from the board test's specs (``noise``: an ImageNoise; ``options``:
+    ``param_cov``, ``at``, ``method``, ...)."""
     from endomeasure.features.boards import parse_board_spec
     from endomeasure.measure.board_runs import board_predictions as predict
 
     grids = {b: np.asarray(parse_board_spec(b).object_points) for b in dict.fromkeys(bt.board)}
-    return predict(bt, model, grids, at=at, **propagation)
+    return predict(bt, model, grids, noise, **options)
 
 
 def _board_test_of(session, reader, model: str, cm, zone_mm: float):
@@ -207,12 +196,12 @@ def predict_board_test(
         raise BadInputError(f"the zone width must be a positive number of mm, not {zone}")
     with open_session(session) as reader:
         cm = load_calibrated_model(reader, model, session)
+        image_noise = noise.image_noise(cm, f"model {model!r}")  # checked before any work
         bt, new_record = _board_test_of(session, reader, model, cm, zone)
     if new_record is not None:
         with edit_session(session) as writer:
             writer.write_record(new_record)
-    image_noise = noise.image_noise(cm, f"model {model!r}")
-    pred = board_predictions(bt, cm.model, **noise.propagation(image_noise, cm.param_cov))
+    pred = board_predictions(bt, cm.model, image_noise, **noise.propagation(cm.param_cov))
     zones = prediction_zones(bt, pred["bias"], pred["std"], pred["std_image"],
                              pred["std_calibration"], zone)  # fmt: skip
     written = None
@@ -292,7 +281,8 @@ def predict_stored_measurement(
         stored.kind,
         stored.pixels_left,
         stored.pixels_right,
-        **noise.propagation(image_noise, cm.param_cov),
+        noise=image_noise,
+        **noise.propagation(cm.param_cov),
     )
     report = MeasurementPredictionReport(
         str(session), measurement, name, stored.kind, kind_spec(stored.kind).unit,
@@ -462,7 +452,9 @@ def predict_map(
             "no grid point of these depths is seen by both halves",
             hint="choose depths inside the working range",
         )
-    em = error_map(cam, centres, template, size_mm, **noise.propagation(image_noise, param_cov))
+    em = error_map(
+        cam, centres, template, size_mm, noise=image_noise, **noise.propagation(param_cov)
+    )
     written_plot = None
     if plot is not None:
         from endomeasure.measure.plots import plot_error_map
