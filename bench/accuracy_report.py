@@ -136,7 +136,9 @@ def zone_start(distance_mm: float, zone_mm: float) -> float:
     :func:`endomeasure.measure.board_test.zone_groups`, ``[k w, (k+1) w)`` for integer k
     (an image's noise group must carry the key its measurements' zones have;
     ``tests/bench`` checks that the two agree)."""
-    return float(np.floor(float(distance_mm) / zone_mm) * zone_mm)
+    from endomeasure.measure.board_test import zone_index
+
+    return float(zone_index(distance_mm, zone_mm) * zone_mm)
 
 
 def neighbour_pairs(ids: np.ndarray, cols: int, errors: dict) -> list[tuple]:
