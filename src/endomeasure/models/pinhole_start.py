@@ -38,6 +38,8 @@ def _calibrate_half(obs: Observations, half: Half, image_size, split):
         objp.append(obs.board_points[sel].astype(np.float32).reshape(-1, 1, 3))
         q = obs.pixels[sel] - np.array([offset, 0.0])
         imgp.append(q.astype(np.float32).reshape(-1, 1, 2))
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # its parallel reductions differ in the last bits from run to run
     try:
         rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
             objp, imgp, size, None, None, flags=cv2.CALIB_FIX_K3
@@ -48,6 +50,8 @@ def _calibrate_half(obs: Observations, half: Half, image_size, split):
             f"({str(exc).strip().splitlines()[-1]})",
             hint=_HINT,
         ) from None
+    finally:
+        cv2.setNumThreads(threads)
     dist = np.asarray(dist, dtype=np.float64).reshape(-1)
     k1, k2, p1, p2, k3 = (list(dist[:5]) + [0.0] * 5)[:5]
     intr = np.array([K[0, 0], K[1, 1], K[0, 2] + offset, K[1, 2], k1, k2, p1, p2, k3])
