@@ -29,6 +29,7 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / "src" / "endomeasure"
 LAYERS = {
     "conventions": 0,
     "errors": 0,
+    "defaults": 0,
     "geometry": 1,
     "interpolation": 1,
     "models": 2,
@@ -41,7 +42,7 @@ LAYERS = {
     "cli": 5,
     "__main__": 6,
 }
-BASE = {"", "conventions", "errors"}  # "" is the package root (__version__)
+BASE = {"", "conventions", "errors", "defaults"}  # "" is the package root (__version__)
 
 PEER_IMPORTS_ALLOWED = {
     ("measure", "solvers"): "measurements triangulate their points with solvers.triangulate",
@@ -157,7 +158,7 @@ def test_cli_imports_pipeline_code_only_inside_commands():
         for target, _, at_top in imports(path, "endomeasure.cli")
         if at_top and target.startswith("endomeasure")
     )
-    assert set(top) <= {"endomeasure", "endomeasure.errors"}, top
+    assert set(top) <= {"endomeasure", "endomeasure.errors", "endomeasure.defaults"}, top
 
 
 def test_importing_the_cli_loads_no_heavy_module():
@@ -172,7 +173,7 @@ def test_importing_the_cli_loads_no_heavy_module():
     assert json.loads(result.stdout) == []
 
 
-@pytest.mark.parametrize("module", ["endomeasure.errors", "endomeasure"])
+@pytest.mark.parametrize("module", ["endomeasure.errors", "endomeasure.defaults", "endomeasure"])
 def test_base_modules_need_only_the_standard_library(module):
     code = (
         "import json, sys; before = set(sys.modules); "

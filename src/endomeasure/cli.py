@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from endomeasure import __version__
+from endomeasure import __version__, defaults
 from endomeasure.errors import EndomeasureError
 
 if TYPE_CHECKING:
@@ -666,7 +666,7 @@ def measure(
             "--warn-percent",
             help="Warn when the predicted 95% error exceeds this percentage of the value.",
         ),
-    ] = 5.0,
+    ] = defaults.WARN_PERCENT,
     sigma: SigmaOption = None,
     board_test: Annotated[
         bool,
@@ -674,7 +674,7 @@ def measure(
     ] = False,
     zone_mm: Annotated[
         float, typer.Option("--zone-mm", help="Board test: width of the distance zones, mm.")
-    ] = 5.0,
+    ] = defaults.ZONE_MM,
     plot: Annotated[
         Path | None,
         typer.Option(
@@ -686,7 +686,7 @@ def measure(
     patch: Annotated[
         int,
         typer.Option("--patch", help="Automatic matching: correlation patch side, px (odd)."),
-    ] = 15,
+    ] = defaults.PATCH_PX,
     json_output: JsonOption = False,
 ) -> None:
     """Triangulate points and measure them with a predicted +-, or run the board test.

@@ -161,8 +161,8 @@ def random_measurement(model, rng, kind, sigma=DETECTION_NOISE_PX):
     run (not by linear propagation, which misses the depth-noise term that dominates
     short segments far away, and not by the UT under test).
     """
+    from endomeasure.defaults import WARN_PERCENT
     from endomeasure.measure.predict import Z95
-    from endomeasure.pipeline.measure import DEFAULT_WARN_PERCENT
 
     while True:
         pair = surface_measurement(model, rng, kind)
@@ -182,7 +182,7 @@ def random_measurement(model, rng, kind, sigma=DETECTION_NOISE_PX):
             seed=5,
         )
         index = 100.0 * (abs(mc.bias[0]) + Z95 * mc.std[0]) / abs(mc.value[0])
-        if mc.n_invalid[0] == 0 and index <= DEFAULT_WARN_PERCENT:
+        if mc.n_invalid[0] == 0 and index <= WARN_PERCENT:
             return pair
 
 

@@ -19,8 +19,9 @@ from tests.pipeline.measure_data import (
 from typer.testing import CliRunner
 
 from endomeasure import cli
+from endomeasure.defaults import WARN_PERCENT
 from endomeasure.io.session import open_session
-from endomeasure.pipeline.measure import DEFAULT_WARN_PERCENT, board_test, measure_points
+from endomeasure.pipeline.measure import board_test, measure_points
 
 runner = CliRunner()
 
@@ -127,7 +128,7 @@ def test_warning_above_the_threshold(exact_session):
     assert result.exit_code == 0, result.output
     assert "WARNING: not accurate enough" in result.stderr
     doc = json.loads(_measure(session, pts, "length", "--json").stdout)
-    assert doc["warning"] and doc["relative_percent"] > DEFAULT_WARN_PERCENT
+    assert doc["warning"] and doc["relative_percent"] > WARN_PERCENT
     relaxed = _measure(session, pts, "length", "--warn-percent", str(2 * doc["relative_percent"]))
     assert "WARNING" not in relaxed.stderr and "accuracy index" in relaxed.stderr
 

@@ -33,6 +33,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from endomeasure import defaults
 from endomeasure.errors import BadInputError
 from endomeasure.measure.kinds import evaluate
 
@@ -370,7 +371,9 @@ def zone_groups(table: BoardTestTable, zone_mm: float, valid: np.ndarray):
             yield kind, k, sel & (zone == k)
 
 
-def zone_summary(tables: Mapping[str, BoardTestTable], zone_mm: float = 5.0) -> ZoneSummary:
+def zone_summary(
+    tables: Mapping[str, BoardTestTable], zone_mm: float = defaults.ZONE_MM
+) -> ZoneSummary:
     """Group board-test errors by distance zone, kind and model.
 
     Parameters

@@ -95,6 +95,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
+from endomeasure import defaults
 from endomeasure.conventions import Half, Status, in_half
 from endomeasure.errors import BadInputError
 from endomeasure.geometry.rays import common_perpendicular
@@ -324,7 +325,7 @@ class MatchSettings:
     """
 
     depth_range_mm: tuple[float, float] = (8.0, 60.0)
-    patch: int = 15
+    patch: int = defaults.PATCH_PX
     warp: str = "plane"
     min_score: float = MIN_SCORE
     max_second_ratio: float = MAX_SECOND_RATIO

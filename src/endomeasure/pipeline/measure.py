@@ -53,6 +53,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
+from endomeasure import defaults
 from endomeasure.conventions import Half, Status, in_half
 from endomeasure.errors import BadInputError, GoalNotMetError
 
@@ -60,9 +61,6 @@ if TYPE_CHECKING:
     from endomeasure.measure.board_runs import ModelBoardTest
 
 __all__ = [
-    "DEFAULT_PATCH_PX",
-    "DEFAULT_WARN_PERCENT",
-    "DEFAULT_ZONE_MM",
     "BoardTestReport",
     "MeasureReport",
     "MatchRefusedError",
@@ -70,17 +68,6 @@ __all__ = [
     "board_test",
     "measure_points",
 ]
-
-DEFAULT_WARN_PERCENT = 5.0
-"""Accuracy-index threshold (percent): the +-5 % that commercial videoscopes quote for
-stereo measurements in their working range."""
-
-DEFAULT_PATCH_PX = 15
-"""Correlation patch of the automatic search (px): the search's own default."""
-
-DEFAULT_ZONE_MM = 5.0
-"""Width of the distance zones of the board test (mm): the paper's Fig. 4 uses zones of
-a few mm, wide enough for several images per zone and a per-zone standard deviation."""
 
 METHOD = "ut"
 """How ``measure`` propagates the uncertainty (``predict-error`` offers the others)."""
@@ -338,10 +325,10 @@ def measure_points(
     right: Sequence[tuple[float, float]] | None,
     kind: str,
     *,
-    warn_percent: float = DEFAULT_WARN_PERCENT,
+    warn_percent: float = defaults.WARN_PERCENT,
     sigma: float | tuple[float, float] | None = None,
     store: bool = True,
-    patch: int = DEFAULT_PATCH_PX,
+    patch: int = defaults.PATCH_PX,
     plot: str | Path | None = None,
 ) -> MeasureReport:
     """Triangulate an operator's points, measure, predict the uncertainty and store it.
@@ -500,7 +487,7 @@ def _models_to_run(reader, model: str, session) -> list[str]:
 def board_test(
     session: str | Path,
     model: str = "all",
-    zone_mm: float = DEFAULT_ZONE_MM,
+    zone_mm: float = defaults.ZONE_MM,
     plot: str | Path | None = None,
     store: bool = True,
     on_progress: Callable[[int, int], None] | None = None,

@@ -25,11 +25,11 @@ from typing import Any
 
 import numpy as np
 
+from endomeasure import defaults
 from endomeasure.errors import BadInputError
 
 __all__ = [
     "DEFAULT_DEPTHS_MM",
-    "DEFAULT_ZONE_MM",
     "BoardPredictionReport",
     "MapReport",
     "MeasurementPredictionReport",
@@ -43,9 +43,6 @@ __all__ = [
 DEFAULT_DEPTHS_MM = (10.0, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0, 45.0)
 """Depth planes of a map, mm: the working range of the paper's probe (SPEC section 2);
 ``--depths 10:45:5``."""
-
-DEFAULT_ZONE_MM = 5.0
-"""Zone width of the board test, mm (the ``measure --board-test`` default)."""
 
 MC_SAMPLES = 20_000
 """Monte Carlo samples when ``--samples`` is not given."""
@@ -191,7 +188,7 @@ def predict_board_test(
     from endomeasure.io.session import edit_session, open_session
     from endomeasure.measure.board_runs import prediction_zones, within_band
 
-    zone = float(zone_mm) if zone_mm is not None else DEFAULT_ZONE_MM
+    zone = float(zone_mm) if zone_mm is not None else defaults.ZONE_MM
     if not (math.isfinite(zone) and zone > 0):
         raise BadInputError(f"the zone width must be a positive number of mm, not {zone}")
     with open_session(session) as reader:
