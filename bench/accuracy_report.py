@@ -283,9 +283,7 @@ def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int) -> di
             if key not in preds:  # the prediction at the ideal board: the same every run
                 preds[key] = board_predictions(bt, truth_model, ImageNoise(tuple(nz["sigma_uv"])))
             p = preds[key]
-            zones = prediction_zones(
-                bt, p["bias"], p["std"], p["std_image"], p["std_calibration"], zone_mm
-            )
+            zones = prediction_zones(bt, p, zone_mm)
             rows += [
                 z for z in zones if z["board"] == key[0] and abs(z["zone_start"] - key[1]) < 1e-9
             ]

@@ -410,6 +410,10 @@ def board_test_fields(record: Record) -> dict[str, Any]:
 # ----- prediction records -----------------------------------------------------------------------
 
 
+_PREDICTED_ROW_ARRAYS = ("bias", "std", "std_image", "std_calibration", "value")
+"""The arrays of a board-test prediction record, one entry per board-test row."""
+
+
 def board_prediction_record(report) -> Record:
     """The ``prediction`` record ``board-test-<model>`` of a ``BoardPredictionReport``."""
     return Record(
@@ -425,7 +429,8 @@ def board_prediction_record(report) -> Record:
             "within_band": report.within_band,
             "zones": json.dumps(report.zones),
         },
-        arrays=dict(report.rows),
+        # the predicted errors per board-test row (a PredictedErrors)
+        arrays={k: getattr(report.rows, k) for k in _PREDICTED_ROW_ARRAYS},
         units={"sigma_px": "px", "zone_mm": "mm"},
     )
 

@@ -291,10 +291,10 @@ def board_predictions(
 
     Returns
     -------
-    dict of ndarray, shape (M,)
-        ``bias``, ``std``, ``std_image``, ``std_calibration``, ``value``.
+    PredictedErrors
+        Arrays (M,), one entry per row of ``bt.table``.
     """
-    from endomeasure.measure.predict import predict_measurement_error
+    from endomeasure.measure.predict import PredictedErrors, predict_measurement_error
 
     t = bt.table
     images = []
@@ -304,9 +304,7 @@ def board_predictions(
             grid = np.asarray(grids[bt.board[k]])[np.asarray(ids, dtype=np.int64)]
             ql, qr = ideal_board_pixels(model, grid, xyz, ql, qr)
         images.append(BoardImage(ids, xyz, ql, qr))
-    m = t.kind.shape[0]
-    keys = ("bias", "std", "std_image", "std_calibration", "value")
-    out = {key: np.full(m, np.nan) for key in keys}
+    out = PredictedErrors.empty(t.kind.shape[0])
     for kind, measure_kind in BOARD_KINDS.items():
         rows = np.flatnonzero(t.kind == kind)
         if rows.size == 0:
@@ -315,24 +313,18 @@ def board_predictions(
         pred = predict_measurement_error(
             model, measure_kind, ql, qr, noise=noise, param_cov=param_cov, **options
         )
-        out["bias"][rows] = pred.bias
-        out["std"][rows] = pred.std
-        out["value"][rows] = pred.value
-        if "image" in pred.parts:
-            out["std_image"][rows] = pred.parts["image"][1]
-        if "calibration" in pred.parts:
-            out["std_calibration"][rows] = pred.parts["calibration"][1]
-        elif param_cov is None:
-            out["std_image"][rows] = pred.std
+        out.fill(rows, pred, image_only=param_cov is None)
     return out
 
 
-def prediction_zones(bt: ModelBoardTest, bias, std, std_img, std_cal, zone_mm) -> list[dict]:
+def prediction_zones(bt: ModelBoardTest, predicted, zone_mm: float) -> list[dict]:
     """Predicted against actual errors per (board, kind, zone) (module docstring).
 
-    ``bias``, ``std``, ``std_img``, ``std_cal``: (M,) per row of ``bt.table``. Zones with
-    fewer than two measurements are left out.
+    ``predicted``: the :class:`~endomeasure.measure.predict.PredictedErrors` of the rows
+    of ``bt.table``. Zones with fewer than two measurements are left out.
     """
+    bias, std = predicted.bias, predicted.std
+    std_img, std_cal = predicted.std_image, predicted.std_calibration
     t = bt.table
     board_of_row = np.asarray(bt.board, dtype=str)[t.image]
     ok = np.isfinite(t.error) & np.isfinite(std) & np.isfinite(t.z_mean)

@@ -38,6 +38,7 @@ if TYPE_CHECKING:
     from endomeasure.models.base import CameraModel
 
 __all__ = [
+    "PredictedErrors",
     "TEMPLATES",
     "Z95",
     "ErrorMap",
@@ -361,6 +362,32 @@ class ErrorMap(NamedTuple):
     std_calibration: np.ndarray  # (K,) part due to calibration (NaN without param_cov)
     template: str
     size_mm: float
+
+
+class PredictedErrors(NamedTuple):
+    """:class:`PredictedError` for many measurements at once: arrays (M,) in the kinds'
+    units, NaN where a measurement was not predicted."""
+
+    value: np.ndarray
+    bias: np.ndarray
+    std: np.ndarray
+    std_image: np.ndarray
+    std_calibration: np.ndarray
+
+    @classmethod
+    def empty(cls, m: int) -> PredictedErrors:
+        return cls(*(np.full(m, np.nan) for _ in cls._fields))
+
+    def fill(self, rows, pred: Propagation, image_only: bool = False) -> None:
+        """Write a propagation's measurements into ``rows``; ``image_only``: no calibration
+        part was propagated, so all of the std is image noise."""
+        self.value[rows], self.bias[rows], self.std[rows] = pred.value, pred.bias, pred.std
+        if "image" in pred.parts:
+            self.std_image[rows] = pred.parts["image"][1]
+        if "calibration" in pred.parts:
+            self.std_calibration[rows] = pred.parts["calibration"][1]
+        elif image_only:
+            self.std_image[rows] = pred.std
 
 
 def error_map(

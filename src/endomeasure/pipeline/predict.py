@@ -129,7 +129,8 @@ class BoardPredictionReport:
     within_band: float
     """Fraction of all measurements whose error lies in its predicted 2-sigma band."""
     plot: str | None
-    rows: dict[str, np.ndarray] = dataclasses.field(repr=False, default_factory=dict)
+    rows: Any = dataclasses.field(repr=False, default=None)
+    """The PredictedErrors of every board-test row."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -145,7 +146,7 @@ class BoardPredictionReport:
         }
 
 
-def board_predictions(bt, model, noise, **options) -> dict[str, np.ndarray]:
+def board_predictions(bt, model, noise, **options):
     """:func:`endomeasure.measure.board_runs.board_predictions` with the boards' corner
     grids parsed from the board test's specs (``noise``: an ImageNoise; ``options``:
     ``param_cov``, ``at``, ``method``, ...)."""
@@ -199,8 +200,7 @@ def predict_board_test(
         with edit_session(session) as writer:
             writer.write_record(new_record)
     pred = board_predictions(bt, cm.model, image_noise, **noise.propagation(cm.param_cov))
-    zones = prediction_zones(bt, pred["bias"], pred["std"], pred["std_image"],
-                             pred["std_calibration"], zone)  # fmt: skip
+    zones = prediction_zones(bt, pred, zone)
     written = None
     if plot is not None:
         from endomeasure.measure.plots import plot_predicted_vs_actual
@@ -208,7 +208,7 @@ def predict_board_test(
         written = str(plot_predicted_vs_actual(zones, plot))
     report = BoardPredictionReport(
         str(session), model, noise.method, image_noise, noise.calibration, zone, zones,
-        within_band(bt, pred["bias"], pred["std"]), written, pred,
+        within_band(bt, pred.bias, pred.std), written, pred,
     )  # fmt: skip
     if store:
         with edit_session(session) as writer:
