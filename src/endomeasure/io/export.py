@@ -26,7 +26,15 @@ import numpy as np
 
 from endomeasure.errors import BadInputError
 
-__all__ = ["EXPORT_FORMATS", "export_model", "model_document", "read_opencv_yaml"]
+__all__ = [
+    "EXPORT_FORMATS",
+    "export_model",
+    "model_document",
+    "read_model_document",
+    "read_model_file",
+    "read_opencv_yaml",
+    "write_map_csv",
+]
 
 EXPORT_FORMATS = ("json", "opencv-yaml")
 
@@ -37,6 +45,56 @@ def model_document(model, extras: dict[str, Any] | None = None) -> dict[str, Any
     if extras:
         doc["calibration"] = extras
     return doc
+
+
+def read_model_document(path: str | Path, what: str = "model file") -> dict[str, Any]:
+    """The JSON document of a model file (as :func:`export_model` writes it, or wrapped
+    under ``camera_model`` as the simulator's truth files hold it)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise BadInputError(f"cannot read the {what} ({exc})", path=str(path)) from None
+    if isinstance(data, dict) and "model" not in data and "camera_model" in data:
+        data = data["camera_model"]
+    if not isinstance(data, dict):
+        raise BadInputError(f"the {what} is not a model document", path=str(path))
+    return data
+
+
+def read_model_file(path: str | Path):
+    """The camera model of a model file (:func:`read_model_document`)."""
+    from endomeasure.models import model_from_dict
+
+    data = read_model_document(path)
+    try:
+        return model_from_dict(data)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise BadInputError(
+            f"not a camera model ({exc})",
+            path=str(path),
+            hint="write it with `endomeasure export` or model.to_json()",
+        ) from None
+
+
+def write_map_csv(error_map, path: str | Path) -> Path:
+    """An error map (:class:`~endomeasure.measure.predict.ErrorMap`) as CSV: one row per
+    grid point, the centre (mm), whether the template is seen, the predicted value, bias,
+    std and its image and calibration parts (the kind's unit)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    em = error_map
+    data = np.column_stack(
+        [em.centres, em.visible, em.value, em.bias, em.std, em.std_image, em.std_calibration]
+    )
+    np.savetxt(
+        path,
+        data,
+        delimiter=",",
+        fmt="%.9g",
+        header="x_mm,y_mm,z_mm,visible,value,bias,std,std_image,std_calibration",
+        comments="",
+    )
+    return path
 
 
 def _atomic_write(path: Path, write) -> None:

@@ -24,6 +24,7 @@ from endomeasure.io.session import ModelRecord, Record
 
 __all__ = [
     "BOARD_TEST_RECORD",
+    "board_attrs",
     "MEASUREMENT_RECORD",
     "PREDICTION_RECORD",
     "CalibratedModel",
@@ -447,3 +448,20 @@ def measurement_prediction_record(report: Any, fields: Mapping[str, Any]) -> Rec
         },
         units={"sigma_px": "px", "relative_percent": "%"},
     )
+
+
+def board_attrs(spec) -> tuple[dict[str, Any], dict[str, str]]:
+    """The attributes a board is stored with (the parsed values of its spec, a
+    ``features.boards`` board spec), and their units."""
+    attrs: dict[str, Any] = {"kind": spec.kind, "cols": spec.cols, "rows": spec.rows}
+    units = {"square_mm": "mm"}
+    attrs["square_mm"] = spec.square_mm
+    if spec.kind == "charuco":
+        attrs.update(
+            squares_x=spec.squares_x,
+            squares_y=spec.squares_y,
+            marker_mm=spec.marker_mm,
+            dictionary=spec.dictionary,
+        )
+        units["marker_mm"] = "mm"
+    return attrs, units

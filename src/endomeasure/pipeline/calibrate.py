@@ -17,7 +17,6 @@ needed to recompute it.
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -183,10 +182,9 @@ def _summary(result, plots: list[str]) -> ModelSummary:
 def _read_seed(path: str | Path | None):
     if path is None:
         return None
-    try:
-        return json.loads(Path(path).read_text())
-    except (OSError, ValueError) as exc:
-        raise BadInputError(f"cannot read the seed model ({exc})", path=str(path)) from None
+    from endomeasure.io.export import read_model_document
+
+    return read_model_document(path, "seed model")
 
 
 def calibration_order(model: str) -> list[str]:

@@ -26,7 +26,7 @@ import numpy as np
 from endomeasure.conventions import Half
 from endomeasure.errors import BadInputError, EndomeasureError
 
-__all__ = ["DetectReport", "ImageResult", "detect_images", "board_attrs"]
+__all__ = ["DetectReport", "ImageResult", "detect_images"]
 
 STATUS_OK, STATUS_ONE_HALF, STATUS_FAILED = "ok", "one-half", "failed"
 QUALITY_KIND = "edge_width_px"
@@ -137,22 +137,6 @@ class DetectReport:
                 for image in self.images
             ],
         }
-
-
-def board_attrs(spec) -> tuple[dict[str, Any], dict[str, str]]:
-    """Parsed values of a board stored with it, and their units."""
-    attrs: dict[str, Any] = {"kind": spec.kind, "cols": spec.cols, "rows": spec.rows}
-    units = {"square_mm": "mm"}
-    attrs["square_mm"] = spec.square_mm
-    if spec.kind == "charuco":
-        attrs.update(
-            squares_x=spec.squares_x,
-            squares_y=spec.squares_y,
-            marker_mm=spec.marker_mm,
-            dictionary=spec.dictionary,
-        )
-        units["marker_mm"] = "mm"
-    return attrs, units
 
 
 # ----------------------------------------------------------------- worker functions
@@ -434,6 +418,7 @@ def _stored_detections(found: _Detected, board_name: str, method: str | None) ->
 
 
 def _store(session_path: Path, spec, board_name: str, found: _Detected, method) -> None:
+    from endomeasure.io.records import board_attrs
     from endomeasure.io.session import edit_session
 
     stored = _stored_detections(found, board_name, method)

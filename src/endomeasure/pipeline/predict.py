@@ -17,7 +17,6 @@ SPEC section 8, the paper's Section 4.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -339,29 +338,12 @@ class MapReport:
         return d
 
 
-def _load_model_file(path: str | Path):
-    from endomeasure.models import model_from_dict
-
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as exc:
-        raise BadInputError(f"cannot read the model file ({exc})", path=str(path)) from None
-    if isinstance(data, dict) and "model" not in data and "camera_model" in data:
-        data = data["camera_model"]
-    try:
-        return model_from_dict(data)
-    except (KeyError, TypeError, ValueError) as exc:
-        raise BadInputError(
-            f"not a camera model ({exc})",
-            path=str(path),
-            hint="write it with `endomeasure export` or model.to_json()",
-        ) from None
-
-
 def _map_model(session, model: str, model_file):
     """(camera model, calibrated model or None, source, name) of a map."""
     if model_file is not None:
-        cam = _load_model_file(model_file)
+        from endomeasure.io.export import read_model_file
+
+        cam = read_model_file(model_file)
         return cam, None, str(model_file), cam.NAME
     if session is None:
         raise BadInputError("a map needs a session with a calibrated model, or --model-file")
@@ -391,23 +373,6 @@ def _per_depth(em, depths: np.ndarray) -> list[dict[str, Any]]:
     return rows
 
 
-def _write_map_csv(em, csv: str | Path) -> str:
-    path = Path(csv)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    data = np.column_stack(
-        [em.centres, em.visible, em.value, em.bias, em.std, em.std_image, em.std_calibration]
-    )
-    np.savetxt(
-        path,
-        data,
-        delimiter=",",
-        fmt="%.9g",
-        header="x_mm,y_mm,z_mm,visible,value,bias,std,std_image,std_calibration",
-        comments="",
-    )
-    return str(path)
-
-
 def predict_map(
     session: str | Path | None,
     *,
@@ -428,6 +393,7 @@ def predict_map(
     JSON model with nominal parameters (no covariance; ``noise.sigma`` must be given).
     ``depths``: the planes of the grid, mm; ``grid``: (NU, NV) pixels over the left half.
     """
+    from endomeasure.io.export import write_map_csv
     from endomeasure.measure.predict import TEMPLATES, error_map, volume_grid
 
     if template not in TEMPLATES:
@@ -457,7 +423,7 @@ def predict_map(
         from endomeasure.measure.plots import plot_error_map
 
         written_plot = str(plot_error_map(em, plot))
-    written_csv = None if csv is None else _write_map_csv(em, csv)
+    written_csv = None if csv is None else str(write_map_csv(em, csv))
     return MapReport(
         source, name, template, float(size_mm), em.true, noise.method, image_noise,
         noise.calibration and param_cov is not None, [float(d) for d in z], _per_depth(em, z),
