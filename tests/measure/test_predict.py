@@ -285,13 +285,13 @@ def test_error_map_of_an_x_segment(raytrace_model):
     vis = em.visible
     assert vis.sum() > 0.8 * centres.shape[0]
     # noise-free value of the template is its true value; noise grows with depth
-    np.testing.assert_allclose(em.value[vis], 1.0, atol=1e-6)
-    assert np.all(np.isnan(em.std[~vis]))
-    near = np.nanmedian(em.std[vis & (centres[:, 2] < 13)])
-    far = np.nanmedian(em.std[vis & (centres[:, 2] > 35)])
+    np.testing.assert_allclose(em.errors.value[vis], 1.0, atol=1e-6)
+    assert np.all(np.isnan(em.errors.std[~vis]))
+    near = np.nanmedian(em.errors.std[vis & (centres[:, 2] < 13)])
+    far = np.nanmedian(em.errors.std[vis & (centres[:, 2] > 35)])
     assert far > 3 * near
-    np.testing.assert_allclose(em.std_image[vis], em.std[vis])
-    assert np.all(np.isnan(em.std_calibration))
+    np.testing.assert_allclose(em.errors.std_image[vis], em.errors.std[vis])
+    assert np.all(np.isnan(em.errors.std_calibration))
 
 
 @pytest.mark.parametrize("template", list(TEMPLATES))

@@ -83,9 +83,7 @@ def write_map_csv(error_map, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     em = error_map
-    data = np.column_stack(
-        [em.centres, em.visible, em.value, em.bias, em.std, em.std_image, em.std_calibration]
-    )
+    data = np.column_stack([em.centres, em.visible, *em.errors])
     np.savetxt(
         path,
         data,

@@ -182,15 +182,14 @@ def plot_error_map(error_map, path: str | Path, n_panels: int = 4) -> Path:
         np.unique(np.linspace(0, depths.size - 1, min(n_panels, depths.size)).round().astype(int))
     ]
     fig, axes = plt.subplots(1, show.size + 1, figsize=(3.6 * (show.size + 1), 3.4), squeeze=False)
-    finite = error_map.std[np.isfinite(error_map.std)]
+    std = error_map.errors.std
+    finite = std[np.isfinite(std)]
     vmax = float(np.percentile(finite, 99)) if finite.size else 1.0
     unit = "mm²" if error_map.template == "area" else "mm"
     for k, z in enumerate(show):
         ax = axes[0, k]
-        sel = np.isclose(c[:, 2], z) & np.isfinite(error_map.std)
-        sc = ax.scatter(
-            c[sel, 0], c[sel, 1], c=error_map.std[sel], s=8, cmap="viridis", vmin=0, vmax=vmax
-        )
+        sel = np.isclose(c[:, 2], z) & np.isfinite(std)
+        sc = ax.scatter(c[sel, 0], c[sel, 1], c=std[sel], s=8, cmap="viridis", vmin=0, vmax=vmax)
         ax.invert_yaxis()
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_title(f"z = {z:g} mm", fontsize=9)
@@ -198,8 +197,8 @@ def plot_error_map(error_map, path: str | Path, n_panels: int = 4) -> Path:
         ax.set_ylabel("y [mm]", fontsize=8)
     fig.colorbar(sc, ax=axes[0, : show.size].tolist(), shrink=0.8, label=f"predicted std [{unit}]")
     ax = axes[0, -1]
-    med = [np.nanmedian(error_map.std[np.isclose(c[:, 2], z)]) for z in depths]
-    hi = [np.nanmax(error_map.std[np.isclose(c[:, 2], z)]) for z in depths]
+    med = [np.nanmedian(std[np.isclose(c[:, 2], z)]) for z in depths]
+    hi = [np.nanmax(std[np.isclose(c[:, 2], z)]) for z in depths]
     ax.plot(depths, med, "o-", ms=3, label="median over the field")
     ax.plot(depths, hi, "s--", ms=3, label="worst in the field")
     ax.set_xlabel("z [mm]", fontsize=8)

@@ -349,21 +349,6 @@ def volume_grid(
     return p[model.project(p, "right").status == Status.OK]
 
 
-class ErrorMap(NamedTuple):
-    """Predicted error of a template measurement at each grid point (arrays (K,))."""
-
-    centres: np.ndarray  # (K, 3) mm
-    true: float  # the template's true value (mm or mm^2)
-    visible: np.ndarray  # (K,) bool: all template points seen in both halves
-    value: np.ndarray  # (K,) the noise-free measurement (equals ``true`` up to the model)
-    bias: np.ndarray  # (K,) predicted bias
-    std: np.ndarray  # (K,) predicted standard deviation
-    std_image: np.ndarray  # (K,) part due to image noise
-    std_calibration: np.ndarray  # (K,) part due to calibration (NaN without param_cov)
-    template: str
-    size_mm: float
-
-
 class PredictedErrors(NamedTuple):
     """:class:`PredictedError` for many measurements at once: arrays (M,) in the kinds'
     units, NaN where a measurement was not predicted."""
@@ -388,6 +373,18 @@ class PredictedErrors(NamedTuple):
             self.std_calibration[rows] = pred.parts["calibration"][1]
         elif image_only:
             self.std_image[rows] = pred.std
+
+
+class ErrorMap(NamedTuple):
+    """Predicted error of a template measurement at each grid point (arrays (K,))."""
+
+    centres: np.ndarray  # (K, 3) mm
+    true: float  # the template's true value (mm or mm^2)
+    visible: np.ndarray  # (K,) bool: all template points seen in both halves
+    errors: PredictedErrors  # (K,) each; value: the noise-free measurement (``true`` up to
+    # the model); std_calibration NaN without param_cov; NaN where not visible
+    template: str
+    size_mm: float
 
 
 def error_map(
@@ -428,22 +425,12 @@ def error_map(
     pr = model.project(pts, "right")
     visible = np.all((pl.status == Status.OK) & (pr.status == Status.OK), axis=1)
     true = float(evaluate(kind, template_points(template, np.zeros((1, 3)), size_mm))[0])
-    value = np.full(K, np.nan)
-    bias = np.full(K, np.nan)
-    std = np.full(K, np.nan)
-    std_img = np.full(K, np.nan)
-    std_cal = np.full(K, np.nan)
+    errors = PredictedErrors.empty(K)
     if visible.any():
         res = predict_measurement_error(
             model, kind, pl.pixels[visible], pr.pixels[visible], noise=noise,
             param_cov=param_cov, method=method, **options,
         )  # fmt: skip
-        value[visible], bias[visible], std[visible] = res.value, res.bias, res.std
-        if "image" in res.parts:
-            std_img[visible] = res.parts["image"][1]
-        if "calibration" in res.parts:
-            std_cal[visible] = res.parts["calibration"][1]
-    return ErrorMap(
-        np.asarray(centres, dtype=np.float64), true, visible, value, bias, std, std_img, std_cal,
-        template, float(size_mm),
-    )  # fmt: skip
+        errors.fill(visible, res)
+    centres = np.asarray(centres, dtype=np.float64)
+    return ErrorMap(centres, true, visible, errors, template, float(size_mm))

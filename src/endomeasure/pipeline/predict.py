@@ -330,8 +330,8 @@ class MapReport:
             d["points"] = [
                 {
                     "xyz_mm": em.centres[i].tolist(),
-                    "bias": float(em.bias[i]),
-                    "std": float(em.std[i]),
+                    "bias": float(em.errors.bias[i]),
+                    "std": float(em.errors.std[i]),
                 }
                 for i in np.flatnonzero(em.visible)
             ]
@@ -358,16 +358,16 @@ def _map_model(session, model: str, model_file):
 def _per_depth(em, depths: np.ndarray) -> list[dict[str, Any]]:
     rows = []
     for d in depths:
-        sel = np.isclose(em.centres[:, 2], d) & np.isfinite(em.std)
+        sel = np.isclose(em.centres[:, 2], d) & np.isfinite(em.errors.std)
         if not sel.any():
             continue
         rows.append(
             {
                 "z_mm": float(d),
                 "n": int(sel.sum()),
-                "std_median": float(np.median(em.std[sel])),
-                "std_max": float(np.max(em.std[sel])),
-                "bias_median": float(np.median(em.bias[sel])),
+                "std_median": float(np.median(em.errors.std[sel])),
+                "std_max": float(np.max(em.errors.std[sel])),
+                "bias_median": float(np.median(em.errors.bias[sel])),
             }
         )
     return rows
