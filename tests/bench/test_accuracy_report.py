@@ -3,27 +3,13 @@ the board test's zone, and the board sets of given pixels are the library's."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
+from tests.bench.bench_scripts import load_bench_script
 
 from endomeasure.measure.board_test import BoardTestTable, zone_summary
 
-BENCH = Path(__file__).resolve().parents[2] / "bench"
-
-
-def _load_accuracy_report():
-    spec = importlib.util.spec_from_file_location("accuracy_report", BENCH / "accuracy_report.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
-report = _load_accuracy_report()
+report = load_bench_script("accuracy_report.py", "accuracy_report")
 
 
 def _one_row_table(z_mm: float) -> BoardTestTable:

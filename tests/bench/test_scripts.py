@@ -4,25 +4,13 @@ missed target leaves behind."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 from pathlib import Path
 
 import pytest
+from tests.bench.bench_scripts import load_bench_script
 
-BENCH = Path(__file__).resolve().parents[2] / "bench"
-
-
-def _load_common():
-    spec = importlib.util.spec_from_file_location("bench_common", BENCH / "_common.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
-common = _load_common()
+common = load_bench_script("_common.py", "bench_common")
 UNDER_1_S = common.Target("ML triangulation", "<", 1.0, " s", "issue 7")
 SECTION = "triangulate"
 DOC_BEFORE = (
