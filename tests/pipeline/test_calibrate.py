@@ -78,6 +78,8 @@ def test_results_are_stored_with_everything_needed_later(calibrated, session):
     assert cov.shape == (len(free), len(free))
     np.testing.assert_allclose(np.sqrt(np.diag(cov)), rec.arrays["std"])
     assert rec.units["rms"] == "px"
+    units = dict(zip(free, (str(u) for u in rec.arrays["free_units"]), strict=True))
+    assert (units["fx"], units["rear_d"], units["left_a"], units["k1"]) == ("px", "mm", "rad", "1")
     # the stored residuals are reproduced by the stored model and poses
     model = model_from_record(rec)
     from endomeasure.geometry.rotations import rotation_matrix

@@ -56,6 +56,7 @@ def calibration_record(result, name: str | None = None) -> ModelRecord:
     model = result.model
     arrays = {
         "free_names": np.array(result.free_names, dtype=object),
+        "free_units": np.array([model.unit(n) for n in result.free_names], dtype=object),
         "covariance": result.covariance,
         "correlation": result.correlation,
         "std": result.std,
