@@ -102,6 +102,17 @@ def _offset(x, y, faces, n_glass, px, py, pz):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def offsets(x, y, points, faces, n_glass, out):
+    """``_offset`` of many lens coordinates ``x, y`` (N,) from their points (N, 3), into
+    ``out`` (N, 2), mm; NaN where the trace fails."""
+    for i in range(points.shape[0]):
+        ex, ey, s, st = _offset(x[i], y[i], faces, n_glass, points[i, 0], points[i, 1],
+                                points[i, 2])  # fmt: skip
+        out[i, 0] = ex
+        out[i, 1] = ey
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _poly_start(exponents, coeffs, wx, wy, q, pw_x, pw_y, pw_q):
     """Polynomial start map: ``(x, y, dx/dwx, dx/dwy, dy/dwx, dy/dwy)`` at (wx, wy, q)."""
     top = pw_x.shape[0] - 1

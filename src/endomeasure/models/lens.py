@@ -1,4 +1,4 @@
-"""The Brown lens camera both models share: pixels of lens coordinates and derivatives."""
+"""The Brown lens camera both models share: its parameter names and its Jacobians."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 
 from endomeasure.geometry.distortion import distort, distort_coeff_jacobian, distort_jacobian
 
-__all__ = ["LENS_NAMES", "DISTORTION_NAMES", "lens_units", "lens_pixels_and_jacobians"]
+__all__ = ["LENS_NAMES", "DISTORTION_NAMES", "lens_units", "lens_jacobians"]
 
 LENS_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 """The lens camera's parameters in OpenCV order (the columns of ``dq_dlens``)."""
@@ -21,8 +21,8 @@ def lens_units(prefix: str = "") -> dict[str, str]:
     return {prefix + n: "px" if n in LENS_NAMES[:4] else "1" for n in LENS_NAMES}
 
 
-def lens_pixels_and_jacobians(x: np.ndarray, y: np.ndarray, lens) -> tuple[np.ndarray, ...]:
-    """Pixels of undistorted normalised lens coordinates, and their derivatives.
+def lens_jacobians(x: np.ndarray, y: np.ndarray, lens) -> tuple[np.ndarray, np.ndarray]:
+    """Derivatives of the pixels of undistorted normalised lens coordinates.
 
     Parameters
     ----------
@@ -32,7 +32,6 @@ def lens_pixels_and_jacobians(x: np.ndarray, y: np.ndarray, lens) -> tuple[np.nd
 
     Returns
     -------
-    pixels : ndarray, shape (N, 2), px
     dq_dxy : ndarray, shape (N, 2, 2), px
     dq_dlens : ndarray, shape (N, 2, 9), px per parameter unit
 
@@ -40,10 +39,9 @@ def lens_pixels_and_jacobians(x: np.ndarray, y: np.ndarray, lens) -> tuple[np.nd
     -----
     ``q = (fx xd + cx, fy yd + cy)`` with ``(xd, yd) = distort(x, y)``.
     """
-    fx, fy, cx, cy, k1, k2, p1, p2, k3 = lens
+    fx, fy, _, _, k1, k2, p1, p2, k3 = lens
     coeffs = (k1, k2, p1, p2, k3)
     xd, yd = distort(x, y, coeffs)
-    pixels = np.stack([fx * xd + cx, fy * yd + cy], axis=-1)
     j11, j12, j21, j22 = distort_jacobian(x, y, coeffs)
     f = np.array([fx, fy])[None, :, None]
     dq_dxy = f * np.stack([np.stack([j11, j12], -1), np.stack([j21, j22], -1)], -2)
@@ -53,4 +51,4 @@ def lens_pixels_and_jacobians(x: np.ndarray, y: np.ndarray, lens) -> tuple[np.nd
     dq_dlens[:, 0, 2] = 1.0
     dq_dlens[:, 1, 3] = 1.0
     dq_dlens[:, :, 4:9] = f * distort_coeff_jacobian(x, y)  # k1 k2 p1 p2 k3
-    return pixels, dq_dxy, dq_dlens
+    return dq_dxy, dq_dlens

@@ -22,7 +22,7 @@ from endomeasure.geometry.distortion import (
 )
 from endomeasure.geometry.rotations import rotation_jacobian, rotation_matrix, skew
 from endomeasure.models.base import CameraModel, OpenCVStereo, ParamBatch
-from endomeasure.models.lens import LENS_NAMES, lens_pixels_and_jacobians, lens_units
+from endomeasure.models.lens import LENS_NAMES, lens_jacobians, lens_units
 
 __all__ = ["PinholeModel", "project_pinhole", "UNDISTORT_TOL_PX"]
 
@@ -141,14 +141,14 @@ class PinholeModel(CameraModel):
         return dq_dp
 
     def _project_jacobians(self, points, half, free):
-        """Closed form: the half's intrinsics through :func:`lens_pixels_and_jacobians`,
+        """Closed form: the half's intrinsics through :func:`lens_jacobians`,
         the right camera's pose by ``d(R X + t) = -[R X]_x J(rvec) d rvec + d t``."""
         cam = self._to_camera(points, half)
         pixels, status = project_pinhole(cam, self.intrinsics(half))
         dq_dp = self._point_jacobian(cam, half)
         zs = np.where(cam[:, 2] > 0, cam[:, 2], 1.0)
         x, y = cam[:, 0] / zs, cam[:, 1] / zs
-        _, dq_dxy, dq_dintr = lens_pixels_and_jacobians(x, y, self.intrinsics(half))
+        dq_dxy, dq_dintr = lens_jacobians(x, y, self.intrinsics(half))
         dq_dall = np.zeros((points.shape[0], 2, self.params.size))
         dq_dall[:, :, self.GROUPS[half.label]] = dq_dintr
         if half is Half.RIGHT:

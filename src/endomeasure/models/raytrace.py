@@ -36,7 +36,7 @@ from endomeasure.models.base import FD_STEP_PARAM, CameraModel, ParamBatch, fini
 from endomeasure.models.lens import (
     DISTORTION_NAMES,
     LENS_NAMES,
-    lens_pixels_and_jacobians,
+    lens_jacobians,
     lens_units,
 )
 from endomeasure.models.projector import Projector, zero_lost_rows
@@ -355,7 +355,7 @@ class RaytraceModel(CameraModel):
         dq_dp = self._point_jacobian(aim)
         good = np.isfinite(aim.x) & np.isfinite(aim.y)
         x, y = np.where(good, aim.x, 0.0), np.where(good, aim.y, 0.0)
-        _, dq_dxy, dq_dlens = lens_pixels_and_jacobians(x, y, self.lens())
+        dq_dxy, dq_dlens = lens_jacobians(x, y, self.lens())
         dq_dparams = np.zeros((points.shape[0], 2, free.size))
         names = [self.PARAM_NAMES[i] for i in free]
         lens_cols = [k for k, name in enumerate(names) if name in LENS_NAMES]
@@ -371,31 +371,31 @@ class RaytraceModel(CameraModel):
         dq_dparams[~good] = np.nan
         return dq_dp, dq_dparams
 
-    def _miss(self, x, y, half, points) -> tuple[np.ndarray, np.ndarray]:
-        """``G`` (N, 2) mm: where the ray of lens coordinates (x, y) crosses the depth of
-        each point, minus the point; and whether it is valid (N,)."""
-        tr = self.trace(x, y, half)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = (points[:, 2] - tr.origins[:, 2]) / tr.directions[:, 2]
-        G = tr.origins[:, :2] + s[:, None] * tr.directions[:, :2] - points[:, :2]
-        return G, (tr.status == Status.OK) & (s > 0) & np.all(np.isfinite(G), axis=-1)
-
     def _miss_derivative(self, i: int, x, y, half, points) -> np.ndarray:
-        """``dG / d params[i]`` (N, 2) by central differences, one-sided at the edge of
-        the valid domain (e.g. a face distance within a step of zero)."""
+        """``dG / d params[i]`` (N, 2) by central differences of the kernel's offset ``G``
+        (where the ray of lens coordinates (x, y) crosses the depth of each point, minus
+        the point), one-sided at the edge of the valid domain (e.g. a face distance within
+        a step of zero)."""
+        x, y = np.ascontiguousarray(x), np.ascontiguousarray(y)
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        n_glass = self.index("n_glass")
+
+        def offsets(params):
+            if not self.valid_params(params):
+                return None
+            out = np.empty((points.shape[0], 2))
+            faces = np.ascontiguousarray(_faces(params, half))
+            _prism_kernels.offsets(x, y, points, faces, float(params[n_glass]), out)
+            return out
+
         step = FD_STEP_PARAM * max(1.0, abs(float(self.params[i])))
-        sides = []
+        stepped = []
         for sign in (1.0, -1.0):
             p = self.params.copy()
             p[i] += sign * step
-            try:
-                sides.append(self.with_params(p)._miss(x, y, half, points)[0])
-            except ValueError:
-                sides.append(None)
-        plus, minus = sides
-        centre = (
-            None if plus is not None and minus is not None else self._miss(x, y, half, points)[0]
-        )
+            stepped.append(offsets(p))
+        plus, minus = stepped
+        centre = None if plus is not None and minus is not None else offsets(self.params)
         return finite_difference(plus, centre, minus, step)
 
     def with_params(self, params: np.ndarray) -> RaytraceModel:
