@@ -451,12 +451,10 @@ class CameraModel(abc.ABC):
     ) -> tuple[np.ndarray, np.ndarray]:
         """The one rule of a valid projection, applied to a model's raw output.
 
-        ``pixels`` (N, 2) and ``status`` (N,) from :meth:`_project`: an OK pixel outside
-        its half becomes ``OUTSIDE_HALF``, and every pixel whose status is not OK is NaN.
-        Returns new arrays.
+        ``pixels`` (N, 2) float64 and ``status`` (N,) uint8, as :meth:`_project` returns
+        them: an OK pixel outside its half becomes ``OUTSIDE_HALF``, and every pixel whose
+        status is not OK is NaN. Changes both arrays in place and returns them.
         """
-        status = np.array(status, dtype=STATUS_DTYPE)
-        pixels = np.array(pixels, dtype=np.float64)
         ok = status == Status.OK
         inside = in_half(pixels, half, self.config.split, self.config.image_size)
         status[ok & ~inside] = Status.OUTSIDE_HALF
@@ -505,10 +503,7 @@ class CameraModel(abc.ABC):
         the valid domain."""
         p = self.params.copy()
         p[i] += step
-        try:
-            return self.with_params(p)._project(points, half)[0]
-        except ValueError:
-            return None
+        return self.with_params(p)._project(points, half)[0] if self.valid_params(p) else None
 
     @abc.abstractmethod
     def _rays(self, pixels: np.ndarray, half: Half) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -122,10 +122,13 @@ class PinholeModel(CameraModel):
     def _project_jacobian(self, points, half):
         cam = self._to_camera(points, half)
         pixels, status = project_pinhole(cam, self.intrinsics(half))
-        return pixels, status, self._point_jacobian(cam, half)
+        dq_dp = self._camera_jacobian(cam, half)
+        if half is Half.RIGHT:
+            dq_dp = dq_dp @ self.pose_right_left()[0]
+        return pixels, status, dq_dp
 
-    def _point_jacobian(self, cam: np.ndarray, half: Half) -> np.ndarray:
-        """d pixel / d point (N, 2, 3) of camera-frame points ``cam`` (N, 3)."""
+    def _camera_jacobian(self, cam: np.ndarray, half: Half) -> np.ndarray:
+        """d pixel / d camera-frame point (N, 2, 3) of points ``cam`` (N, 3)."""
         fx, fy, _, _, k1, k2, p1, p2, k3 = self.intrinsics(half)
         inv_z = 1.0 / cam[:, 2]
         x, y = cam[:, 0] * inv_z, cam[:, 1] * inv_z
@@ -135,29 +138,22 @@ class PinholeModel(CameraModel):
         dn = np.stack([np.stack([inv_z, zero, -x * inv_z], -1),
                        np.stack([zero, inv_z, -y * inv_z], -1)], -2)  # fmt: skip
         D = np.stack([np.stack([j11, j12], -1), np.stack([j21, j22], -1)], -2)
-        dq_dp = np.array([fx, fy])[:, None] * (D @ dn)
-        if half is Half.RIGHT:
-            dq_dp = dq_dp @ self.pose_right_left()[0]
-        return dq_dp
+        return np.array([fx, fy])[:, None] * (D @ dn)
 
     def _project_jacobians(self, points, half, free):
-        """Closed form: the half's intrinsics through :func:`lens_jacobians`,
-        the right camera's pose by ``d(R X + t) = -[R X]_x J(rvec) d rvec + d t``."""
+        """Closed form: the half's intrinsics through :func:`lens_jacobians`, the right
+        camera's pose by ``d(R X + t) = -[R X]_x J(rvec) d rvec + d t``."""
         cam = self._to_camera(points, half)
         pixels, status = project_pinhole(cam, self.intrinsics(half))
-        dq_dp = self._point_jacobian(cam, half)
+        dq_dcam = self._camera_jacobian(cam, half)
         zs = np.where(cam[:, 2] > 0, cam[:, 2], 1.0)
-        x, y = cam[:, 0] / zs, cam[:, 1] / zs
-        dq_dxy, dq_dintr = lens_jacobians(x, y, self.intrinsics(half))
+        _, dq_dintr = lens_jacobians(cam[:, 0] / zs, cam[:, 1] / zs, self.intrinsics(half))
         dq_dall = np.zeros((points.shape[0], 2, self.params.size))
         dq_dall[:, :, self.GROUPS[half.label]] = dq_dintr
+        dq_dp = dq_dcam
         if half is Half.RIGHT:
-            dxy_dcam = np.zeros((points.shape[0], 2, 3))
-            dxy_dcam[:, 0, 0] = dxy_dcam[:, 1, 1] = 1.0 / zs
-            dxy_dcam[:, 0, 2] = -x / zs
-            dxy_dcam[:, 1, 2] = -y / zs
-            dq_dcam = dq_dxy @ dxy_dcam
             R = self.pose_right_left()[0]
+            dq_dp = dq_dcam @ R
             dcam_drvec = -skew(points @ R.T) @ rotation_jacobian(np.array(self.rvec_right_left))
             dq_dall[:, :, self.GROUPS["rvec_right_left"]] = dq_dcam @ dcam_drvec
             dq_dall[:, :, self.GROUPS["t_right_left"]] = dq_dcam
