@@ -294,6 +294,20 @@ def test_error_map_of_an_x_segment(raytrace_model):
     assert np.all(np.isnan(em.errors.std_calibration))
 
 
+@pytest.mark.parametrize("method", ["ut", "linear", "mc"])
+def test_image_noise_alone_is_the_whole_budget_for_every_method(raytrace_model, method):
+    centres = volume_grid(raytrace_model, np.array([15.0, 30.0]), n_u=4, n_v=3)
+    options = {"n_samples": 200} if method == "mc" else {}
+    em = error_map(
+        raytrace_model, centres, "x-segment", 1.0, noise=ImageNoise(0.05), method=method,
+        **options,
+    )  # fmt: skip
+    vis = em.visible
+    assert vis.sum() >= 6
+    np.testing.assert_array_equal(em.errors.std_image[vis], em.errors.std[vis])
+    assert np.all(np.isnan(em.errors.std_calibration))
+
+
 @pytest.mark.parametrize("template", list(TEMPLATES))
 def test_templates_have_their_true_values(template):
     pts = template_points(template, np.array([[0.0, 0.0, 20.0]]), 2.0)

@@ -313,7 +313,7 @@ def board_predictions(
         pred = predict_measurement_error(
             model, measure_kind, ql, qr, noise=noise, param_cov=param_cov, **options
         )
-        out.fill(rows, pred, image_only=param_cov is None)
+        out.fill(rows, pred)
     return out
 
 

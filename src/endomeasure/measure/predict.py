@@ -185,16 +185,15 @@ class PredictedError:
         return accuracy_index(self.value, self.bias, self.std)
 
     @classmethod
-    def of(cls, pred: Propagation, index: int = 0, image_only: bool = False) -> PredictedError:
-        """Measurement ``index`` of a propagation; ``image_only``: no calibration part was
-        propagated, so all of the std is image noise."""
+    def of(cls, pred: Propagation, index: int = 0) -> PredictedError:
+        """Measurement ``index`` of a propagation (parts it did not compute are NaN)."""
         std = float(pred.std[index])
         parts = {k: float(v[1][index]) for k, v in pred.parts.items()}
         return cls(
             float(pred.value[index]),
             float(pred.bias[index]),
             std,
-            parts.get("image", std if image_only else math.nan),
+            parts.get("image", math.nan),
             parts.get("calibration", math.nan),
         )
 
@@ -363,16 +362,14 @@ class PredictedErrors(NamedTuple):
     def empty(cls, m: int) -> PredictedErrors:
         return cls(*(np.full(m, np.nan) for _ in cls._fields))
 
-    def fill(self, rows, pred: Propagation, image_only: bool = False) -> None:
-        """Write a propagation's measurements into ``rows``; ``image_only``: no calibration
-        part was propagated, so all of the std is image noise."""
+    def fill(self, rows, pred: Propagation) -> None:
+        """Write a propagation's measurements into ``rows`` (parts it did not compute
+        stay NaN)."""
         self.value[rows], self.bias[rows], self.std[rows] = pred.value, pred.bias, pred.std
         if "image" in pred.parts:
             self.std_image[rows] = pred.parts["image"][1]
         if "calibration" in pred.parts:
             self.std_calibration[rows] = pred.parts["calibration"][1]
-        elif image_only:
-            self.std_image[rows] = pred.std
 
 
 class ErrorMap(NamedTuple):

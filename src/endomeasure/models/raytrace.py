@@ -149,9 +149,10 @@ class _AimingProjector(Projector):
     """Projection by ray aiming warm-started from the previous call's lens coordinates.
 
     During an optimisation a trial step moves each solution only a little, so the last
-    one is a far better start than the table and a few traces per point suffice. The start maps of the first
-    model serve every later trial model: they only seed the iteration, and rebuilding
-    them per trial step would dominate the fit. The state is the lens coordinates.
+    one is a far better start than the table and a few traces per point suffice. The
+    start maps of the first model serve every later trial model: they only seed the
+    iteration, and rebuilding them per trial step would dominate the fit. The state is
+    the lens coordinates.
     """
 
     def __init__(self, template, halves, state=None):

@@ -282,7 +282,7 @@ def predict_stored_measurement(
     )
     report = MeasurementPredictionReport(
         str(session), measurement, name, stored.kind, kind_spec(stored.kind).unit,
-        noise.method, image_noise, PredictedError.of(pred, image_only=not noise.calibration),
+        noise.method, image_noise, PredictedError.of(pred),
         int(pred.n_invalid[0]),
     )  # fmt: skip
     if store:

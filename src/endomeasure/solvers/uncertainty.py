@@ -620,16 +620,22 @@ def monte_carlo(
 
 
 def propagate(f: BlackBox, x0, cov, method: str = "ut", *, blocks=None, **options) -> Propagation:
-    """Dispatch to :func:`unscented`, :func:`linearised` or :func:`monte_carlo` by name."""
-    if method == "ut":
-        return unscented(f, x0, cov, blocks=blocks, **options)
-    if method == "linear":
-        return linearised(f, x0, cov, blocks=blocks, **options)
-    if method == "mc":
-        return monte_carlo(f, x0, cov, blocks=blocks, **options)
-    raise BadInputError(
-        f"unknown propagation method {method!r}", hint=f"use one of {', '.join(METHODS)}"
-    )
+    """Dispatch to :func:`unscented`, :func:`linearised` or :func:`monte_carlo` by name.
+
+    When ``blocks`` has one block holding every input, its part of the budget is the
+    whole (:attr:`Propagation.parts`), whatever the method computes for parts.
+    """
+    propagators = {"ut": unscented, "linear": linearised, "mc": monte_carlo}
+    if method not in propagators:
+        raise BadInputError(
+            f"unknown propagation method {method!r}", hint=f"use one of {', '.join(METHODS)}"
+        )
+    result = propagators[method](f, x0, cov, blocks=blocks, **options)
+    if blocks and len(blocks) == 1:
+        ((name, sl),) = blocks.items()
+        if range(*sl.indices(np.shape(x0)[-1])) == range(np.shape(x0)[-1]):
+            result = result._replace(parts={name: (result.bias, result.std)})
+    return result
 
 
 # ----- the measurement as a black box ---------------------------------------------------------
