@@ -41,6 +41,7 @@ import numpy as np
 from endomeasure.errors import BadInputError
 
 __all__ = [
+    "check_count",
     "KINDS",
     "KindSpec",
     "kind_spec",
@@ -231,6 +232,17 @@ def _count_hint(spec: KindSpec) -> str:
     return f"at least {spec.min_points}"
 
 
+def check_count(kind: str, n: int, what: str = "points") -> None:
+    """BadInputError unless ``n`` points can be measured as ``kind`` (``what`` names how
+    the user gives them, for the hint)."""
+    spec = kind_spec(kind)
+    if n < spec.min_points or (spec.max_points is not None and n > spec.max_points):
+        raise BadInputError(
+            f"{kind} needs {_count_hint(spec)} points, got {n}",
+            hint=f"give {_count_hint(spec)} {what} ({spec.description})",
+        )
+
+
 def _collinear(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> bool:
     longest = max(_norm(b - a), _norm(c - a), _norm(c - b))
     return bool(_norm(_cross(b - a, c - a)) <= COLLINEAR_SIN * longest**2)
@@ -258,16 +270,12 @@ def validate(kind: str, points: np.ndarray) -> np.ndarray:
         point-line whose line points coincide); collinear plane points of a depth;
         an area polygon whose points are all collinear.
     """
-    spec = kind_spec(kind)
+    kind_spec(kind)  # an unknown kind is refused before the shape is looked at
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
         raise BadInputError(f"{kind} needs points of shape (n, 3), got {p.shape}")
     n = p.shape[0]
-    if n < spec.min_points or (spec.max_points is not None and n > spec.max_points):
-        raise BadInputError(
-            f"{kind} needs {_count_hint(spec)} points, got {n}",
-            hint=f"give {_count_hint(spec)} points ({spec.description})",
-        )
+    check_count(kind, n)
     if not np.all(np.isfinite(p)):
         bad = np.flatnonzero(~np.all(np.isfinite(p), axis=1)) + 1
         raise BadInputError(

@@ -244,17 +244,10 @@ def _checked_request(kind, left, right, warn_percent, plot) -> _Request:
 
 
 def _check_count(request: _Request, kind: str) -> int:
-    spec, n = request.spec, request.given[request.query_half].shape[0]
-    if n < spec.min_points or (spec.max_points is not None and n > spec.max_points):
-        need = (
-            f"exactly {spec.min_points}"
-            if spec.max_points == spec.min_points
-            else f"at least {spec.min_points}"
-        )
-        raise BadInputError(
-            f"{kind} needs {need} points, got {n}",
-            hint=f"give {need} --left/--right pairs ({spec.description})",
-        )
+    from endomeasure.measure.kinds import check_count
+
+    n = request.given[request.query_half].shape[0]
+    check_count(kind, n, "--left/--right pairs")
     return n
 
 
@@ -369,7 +362,7 @@ def measure_points(
     """
     from endomeasure.io import records
     from endomeasure.io.session import edit_session, open_session
-    from endomeasure.measure.kinds import validate
+    from endomeasure.measure.kinds import measure
 
     request = _checked_request(kind, left, right, warn_percent, plot)
     with open_session(session) as reader:
@@ -379,7 +372,7 @@ def measure_points(
     n = _check_count(request, kind)
     ql, qr, matches, written = _pixel_pairs(cm.model, request, image_pixels, patch, plot)
     tri = _triangulated(cm.model, model_name, ql, qr)
-    value = float(request.spec.function(validate(kind, tri.points)))
+    value = measure(kind, tri.points)
     error, noise = _predicted(cm, kind, value, ql, qr, sigma, matches, request.query_half)
     measured = [
         MeasuredPoint(
