@@ -181,8 +181,9 @@ def predict_board_test(
 ) -> BoardPredictionReport:
     """Predicted vs actual board-test errors per board, kind and zone (the paper's Fig. 5).
 
-    Uses the session's stored board test of ``model`` (running and storing it first if
-    there is none). Stores a ``prediction`` record named ``board-test-<model>``.
+    Uses the session's stored board test of ``model`` (running it, and storing it with
+    the prediction, if there is none). Stores a ``prediction`` record named
+    ``board-test-<model>``.
     """
     from endomeasure.io.records import board_prediction_record, load_calibrated_model
     from endomeasure.io.session import edit_session, open_session
@@ -195,9 +196,6 @@ def predict_board_test(
         cm = load_calibrated_model(reader, model, session)
         image_noise = noise.image_noise(cm, f"model {model!r}")  # checked before any work
         bt, new_record = _board_test_of(session, reader, model, cm, zone)
-    if new_record is not None:
-        with edit_session(session) as writer:
-            writer.write_record(new_record)
     pred = board_predictions(bt, cm.model, image_noise, **noise.propagation(cm.param_cov))
     zones = prediction_zones(bt, pred, zone)
     written = None
@@ -209,9 +207,14 @@ def predict_board_test(
         str(session), model, noise.method, image_noise, noise.calibration, zone, zones,
         within_band(bt, pred.bias, pred.std), written, pred,
     )  # fmt: skip
+    # one edit for both records: the session is copied once, and a failure stores neither
+    records = [] if new_record is None else [new_record]
     if store:
+        records.append(board_prediction_record(report))
+    if records:
         with edit_session(session) as writer:
-            writer.write_record(board_prediction_record(report))
+            for record in records:
+                writer.write_record(record)
     return report
 
 
