@@ -535,7 +535,7 @@ def calibrate(
     session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],
     model: Annotated[
         str, typer.Option("--model", help="A registered camera model, or all.")
-    ] = "all",
+    ] = defaults.ALL_MODELS,
     glass_index: Annotated[
         float | None,
         typer.Option("--glass-index", help="Prism glass index (default N-BK7, 1.5168)."),
@@ -749,7 +749,7 @@ def _measure_board_test(session, model, zone_mm, plot, json_output) -> None:
     console = _stderr_console()
     with _progress(console, "board test", enabled=not json_output) as on_progress:
         report = run_board_test(
-            session, model if model else "all", zone_mm, plot, on_progress=on_progress
+            session, model if model else defaults.ALL_MODELS, zone_mm, plot, on_progress=on_progress
         )
     if json_output:
         _print_json(report.to_dict())

@@ -89,7 +89,7 @@ def write_map_csv(error_map, path: str | Path) -> Path:
         data,
         delimiter=",",
         fmt="%.9g",
-        header="x_mm,y_mm,z_mm,visible,value,bias,std,std_image,std_calibration",
+        header=",".join(("x_mm", "y_mm", "z_mm", "visible", *em.errors._fields)),
         comments="",
     )
     return path

@@ -100,7 +100,7 @@ def calibration_record(result, name: str | None = None) -> ModelRecord:
         "rms_image": "px",
         "rms_image_half": "px",
         "rms_half": "px",
-        "covariance": "parameter units squared (see free_names)",
+        "covariance": "parameter units squared (see free_units)",
     }
     return ModelRecord(
         name=name or model.NAME,
@@ -144,8 +144,10 @@ def calibration_extras(record: ModelRecord) -> dict[str, Any] | None:
     if stored is None:
         return None
     names, cov = stored
+    units = record.arrays.get("free_units")
     return {
         "free_names": names,
+        **({} if units is None else {"free_units": [str(u) for u in units]}),
         "std": np.sqrt(np.diag(cov)).tolist(),
         "covariance": cov.tolist(),
         "rms_px": float(record.attrs.get("rms", float("nan"))),

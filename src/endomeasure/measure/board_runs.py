@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from endomeasure.conventions import Half
+from endomeasure.conventions import Half, Status
 from endomeasure.errors import BadInputError
 from endomeasure.measure.board_test import (
     BOARD_KINDS,
@@ -259,7 +259,7 @@ def ideal_board_pixels(model, grid: np.ndarray, xyz: np.ndarray, ql, qr):
     out = []
     for half, q in (("left", ql), ("right", qr)):
         proj = model.project(ideal, half)
-        good = (proj.status == 0)[:, None]
+        good = (proj.status == Status.OK)[:, None]
         out.append(np.where(good, proj.pixels, q))
     return out[0], out[1]
 

@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from endomeasure.conventions import Half
+
 __all__ = [
     "plot_board_test",
     "plot_error_map",
@@ -61,7 +63,7 @@ def plot_board_test(results: Mapping[str, Any], zone_mm: float, path: str | Path
     Parameters
     ----------
     results : mapping of model name -> ModelBoardTest
-        (:mod:`endomeasure.pipeline.measure`): its ``table`` (kind, error, pixel_mean,
+        (:mod:`endomeasure.measure.board_runs`): its ``table`` (kind, error, pixel_mean,
         z_mean) and ``summary`` / ``summary_board``.
     zone_mm : float, mm
     path : path
@@ -327,9 +329,7 @@ def plot_residuals(result, out_dir: str | Path) -> list[str]:
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for h, colour in ((0, "tab:blue"), (1, "tab:orange")):
         sel = half == h
-        ax.scatter(
-            depth[sel], length[sel], s=4, alpha=0.5, color=colour, label=("left", "right")[h]
-        )
+        ax.scatter(depth[sel], length[sel], s=4, alpha=0.5, color=colour, label=Half(h).label)
     edges = np.linspace(depth.min(), depth.max(), 9)
     idx = np.clip(np.digitize(depth, edges) - 1, 0, len(edges) - 2)
     centres = 0.5 * (edges[1:] + edges[:-1])

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from endomeasure import defaults
 from endomeasure.conventions import Half
 from endomeasure.errors import BadInputError, CalibrationError
 
@@ -36,8 +37,7 @@ __all__ = [
     "export_session_model",
 ]
 
-ALL_MODELS = "all"
-"""The ``--model`` value that asks for every registered model."""
+ALL_MODELS = defaults.ALL_MODELS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,9 +151,6 @@ def load_calibration_inputs(session: str | Path):
             hint="run `endomeasure detect SESSION IMAGES --board SPEC` first",
         )
     return views, boards, meta.image_size, meta.split
-
-
-# ----- plots ------------------------------------------------------------------------------------
 
 
 # ----- the command ------------------------------------------------------------------------------

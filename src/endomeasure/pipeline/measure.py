@@ -464,7 +464,7 @@ def _models_to_run(reader, model: str, session) -> list[str]:
     registered ones in registry order first."""
     from endomeasure.models import MODELS
 
-    if model != "all":
+    if model != defaults.ALL_MODELS:
         return [model]
     held = reader.model_names()
     names = [n for n in MODELS if n in held] + [n for n in held if n not in MODELS]
@@ -479,7 +479,7 @@ def _models_to_run(reader, model: str, session) -> list[str]:
 
 def board_test(
     session: str | Path,
-    model: str = "all",
+    model: str = defaults.ALL_MODELS,
     zone_mm: float = defaults.ZONE_MM,
     plot: str | Path | None = None,
     store: bool = True,

@@ -128,7 +128,7 @@ class BoardPredictionReport:
     within_band: float
     """Fraction of all measurements whose error lies in its predicted 2-sigma band."""
     plot: str | None
-    rows: Any = dataclasses.field(repr=False, default=None)
+    rows: Any = dataclasses.field(repr=False)
     """The PredictedErrors of every board-test row."""
 
     def to_dict(self) -> dict[str, Any]:

@@ -182,7 +182,7 @@ def simulate(
         A built-in preset name or a preset JSON file.
     sets : iterable of str
         Any of ``calib``, ``test``, ``scene``, ``charuco`` (the ChArUco set is not
-        rendered by default). A comma-separated string is accepted for earlier callers.
+        rendered by default); a single name is one set.
     seed : int
         Non-negative; the same seed gives the same images, byte for byte.
     noise_free : bool
