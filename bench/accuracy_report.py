@@ -131,14 +131,12 @@ def noise_figures(el: np.ndarray, er: np.ndarray, pairs: np.ndarray) -> dict:
     }
 
 
-def zone_start(distance_mm: float, zone_mm: float) -> float:
-    """The start of the board-test zone that holds ``distance_mm``: the zones of
-    :func:`endomeasure.measure.board_test.zone_groups`, ``[k w, (k+1) w)`` for integer k
-    (an image's noise group must carry the key its measurements' zones have;
-    ``tests/bench`` checks that the two agree)."""
-    from endomeasure.measure.board_test import zone_index
+def _zone_of(distance_mm: float, zone_mm: float) -> float:
+    """The start of the board-test zone that holds an image's stage distance (the key
+    its measurements' zones carry)."""
+    from endomeasure.measure.board_test import zone_bounds, zone_index
 
-    return float(zone_index(distance_mm, zone_mm) * zone_mm)
+    return zone_bounds(zone_index(distance_mm, zone_mm), zone_mm)[0]
 
 
 def neighbour_pairs(ids: np.ndarray, cols: int, errors: dict) -> list[tuple]:
@@ -183,7 +181,7 @@ def detection_noise(session: Path, data: Path, zone_mm: float | None = None) -> 
         rpairs = neighbour_pairs(ids, left.cols, r)
         offset = e["left"].mean(axis=0) - e["right"].mean(axis=0)
         truth = load_truth(data, image)
-        zone = zone_start(truth["distance_mm"], zone_mm) if zone_mm else None
+        zone = _zone_of(truth["distance_mm"], zone_mm) if zone_mm else None
         keys = [None] + ([zone, (truth["board_spec"], zone)] if zone_mm else [])
         for key in keys:
             groups.setdefault(key, []).append(
@@ -270,7 +268,7 @@ def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int) -> di
         images = []
         for name, t in truths:
             s = np.asarray(
-                groups[(t["board_spec"], zone_start(t["distance_mm"], zone_mm))]["sigma_uv"]
+                groups[(t["board_spec"], _zone_of(t["distance_mm"], zone_mm))]["sigma_uv"]
             )
             noisy = []
             for half in ("left", "right"):

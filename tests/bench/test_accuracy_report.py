@@ -1,30 +1,12 @@
-"""bench/accuracy_report.py's own helpers, without running the script: an image's zone is
-the board test's zone, and the board sets of given pixels are the library's."""
+"""bench/accuracy_report.py's own helpers, without running the script: the board sets of
+given pixels are the library's."""
 
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from tests.bench.bench_scripts import load_bench_script
 
-from endomeasure.measure.board_test import BoardTestTable, zone_summary
-
 report = load_bench_script("accuracy_report.py", "accuracy_report")
-
-
-def _one_row_table(z_mm: float) -> BoardTestTable:
-    one = np.ones(1)
-    return BoardTestTable(
-        np.zeros(1, int), np.array(["x-segment"]), np.array([[0, 1, -1, -1]]), one, one,
-        np.zeros(1), np.array([z_mm]), np.zeros((1, 2)),
-    )  # fmt: skip
-
-
-@pytest.mark.parametrize("zone_mm", [5.0, 2.5, 3.0, 0.7])
-def test_an_images_zone_is_the_zone_the_board_test_reports(zone_mm):
-    for z in (0.0, 9.999, 10.0, 12.0, 14.999999, 15.0, 27.3, 40.0, -0.1, 35.0 - 1e-12):
-        summary = zone_summary({"m": _one_row_table(z)}, zone_mm)
-        assert report.zone_start(z, zone_mm) == summary.zone_start[0], (z, zone_mm)
 
 
 def _truth(board: str, cols: int, n: int) -> dict:

@@ -34,6 +34,7 @@ from endomeasure.measure.board_test import (
     ZoneSummary,
     board_test_table,
     stencil_pixels,
+    zone_bounds,
     zone_groups,
     zone_summary,
 )
@@ -340,8 +341,8 @@ def prediction_zones(bt: ModelBoardTest, predicted, zone_mm: float) -> list[dict
                 {
                     "board": board,
                     "kind": kind,
-                    "zone_start": float(k * zone_mm),
-                    "zone_end": float((k + 1) * zone_mm),
+                    "zone_start": zone_bounds(k, zone_mm)[0],
+                    "zone_end": zone_bounds(k, zone_mm)[1],
                     "n": int(e.size),
                     "true": float(t.true[sel][0]),
                     "actual_mean": float(np.mean(e)),

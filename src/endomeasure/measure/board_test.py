@@ -353,8 +353,13 @@ class ZoneSummary(NamedTuple):
 def zone_index(z: np.ndarray | float, zone_mm: float) -> np.ndarray:
     """The distance zone ``k`` of each depth ``z`` (mm): zones are ``[k w, (k+1) w)`` for
     integers k, aligned to multiples of the width ``w = zone_mm`` so that they agree
-    between models and runs (a zone starts at ``k * zone_mm``)."""
+    between models and runs (:func:`zone_bounds`)."""
     return np.floor(np.asarray(z, dtype=np.float64) / zone_mm)
+
+
+def zone_bounds(k, zone_mm: float) -> tuple[float, float]:
+    """``(start, end)`` of distance zone ``k`` (:func:`zone_index`), mm."""
+    return float(k * zone_mm), float((k + 1) * zone_mm)
 
 
 def zone_groups(table: BoardTestTable, zone_mm: float, valid: np.ndarray):
@@ -396,8 +401,9 @@ def zone_summary(
             e = table.error[rows]
             cols["model"].append(model)
             cols["kind"].append(kind)
-            cols["zone_start"].append(k * zone_mm)
-            cols["zone_end"].append((k + 1) * zone_mm)
+            start, end = zone_bounds(k, zone_mm)
+            cols["zone_start"].append(start)
+            cols["zone_end"].append(end)
             cols["n"].append(e.size)
             cols["mean_error"].append(float(np.mean(e)))
             cols["std_error"].append(float(np.std(e, ddof=1)) if e.size > 1 else np.nan)
