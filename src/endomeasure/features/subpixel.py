@@ -55,13 +55,18 @@ __all__ = [
     "symmetric_system",
 ]
 
-# Gaussian window sigma in squares, chosen by `bench/bench_detect.py refinement`
-# (docs/accuracy.md, "Refinement on the simulator's renders"). Larger windows average
-# more pixels but, without the curvature-aware pairs, feel more of the distortion's
-# curvature of the lines, and beyond about half a square they reach the next grid lines.
+# Gaussian window sigma in squares. Larger windows average more pixels but, without the
+# curvature-aware pairs, feel more of the distortion's curvature of the lines, and beyond
+# about half a square they reach the next grid lines. Chosen on the default preset's
+# renders with SB's own corners as the start; `bench/bench_detect.py refinement` sweeps
+# the sigma only for that start and runs the adopted variant (cornerSubPix start,
+# curvature-aware pairs) at this value alone, where earlier development runs found
+# 0.4-0.5 better on noise-free sets: not re-chosen yet (docs/accuracy.md, "Design
+# measurements behind the code's constants").
 SYMMETRY_SIGMA_SQUARES = 0.3
-# The saddle fit's window sigma in squares: the best of the same comparison (a quadratic
-# surface fits only close to the corner).
+# The saddle fit's window sigma in squares (a quadratic surface fits only close to the
+# corner): chosen in development runs on the default preset (docs/accuracy.md, "Design
+# measurements"); the bench command runs the saddle fit at this value only.
 SADDLE_SIGMA_SQUARES = 0.1
 # Window cut at this many sigmas: 0.6 squares, inside the four squares around a corner
 # with room for the blur of the next grid lines.

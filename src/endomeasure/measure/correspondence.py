@@ -151,11 +151,12 @@ MISFIT_DN = 1.0
 noise in the reported ``precision_px``. What the two halves show of a surface patch
 differs by more than the search models (interpolation, unmodelled brightness fall-off
 and highlights, the pixels' own sampling), so even on noise-free images the matches
-keep an error the noise term cannot predict. The value was fitted on noise-free
-renders of the simulator's scene set (RMS z-score of 1 along the curve); on noisy images
-the noise term dominates. What it gives: ``bench/match_precision.py`` (with
-``--noise-free`` for the noise-free renders), ``docs/accuracy.md``, "Match precision
-against the simulator's truth"."""
+keep an error the noise term cannot predict. It is one grey level fitted on noise-free
+renders of the default preset's scene set only, and does not give an RMS z-score of 1
+there either (random points come out over-, marks under-predicted): a constant, not a
+measured term (issue 17 replaces it). On noisy images the noise term dominates. What it
+gives: ``bench/match_precision.py`` (with ``--noise-free`` for the noise-free renders),
+``docs/accuracy.md``, "Match precision against the simulator's truth"."""
 _NOISE_WINDOW_PATCHES = 4
 """Side of the local noise-estimation window, in patch sizes."""
 _REFINE_ITERATIONS = 12
