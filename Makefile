@@ -25,14 +25,17 @@ demo: install
 	$(PY) scripts/demo.py $(DEMO_DIR)
 
 # Speed: every bench/bench_*.py rewrites its section of docs/benchmarks.md. Accuracy: the
-# long scripts (about an hour on 2 cores) rewrite theirs in docs/accuracy.md, in this order;
+# long scripts (about an hour on 2 cores) rewrite theirs in docs/accuracy.md (the
+# simulator's truth check: docs/simulator.md), in this order;
 # corner_precision.py reads accuracy_report.py's work folder and only prints. Both run every
-# script, then fail if one failed or missed its target (exit 3, one line per miss).
+# script, then fail if one failed or missed its target (the script exits 3 and prints one
+# line per miss; make then exits 1, naming the scripts).
 # ARGS goes to every script: `make bench ARGS=--quick` (smoke run, docs untouched),
 # `ARGS=--no-write` (figures printed only).
 ARGS ?=
 ACCURACY_WORK ?= out/accuracy
 ACCURACY_RUNS := \
+	"bench/bench_simulate.py --accuracy --noisy sample_sessions" \
 	"bench/accuracy_detect.py" \
 	"bench/accuracy_charuco.py --sweep" \
 	"bench/accuracy_report.py sample_sessions --test-seeds 1,2,3 --work $(ACCURACY_WORK)" \

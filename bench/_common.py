@@ -29,7 +29,6 @@ import argparse
 import operator
 import platform
 import re
-import shlex
 import statistics
 import sys
 import time
@@ -40,7 +39,6 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "docs" / "benchmarks.md"
 ACCURACY = ROOT / "docs" / "accuracy.md"
-DOC = BENCHMARKS  # the default document of write_section
 
 EXIT_MISSED = 3
 """Exit status of a script that ran to the end but missed a target (an exception gives 1,
@@ -141,25 +139,12 @@ def script_parser(
 class Report:
     """The targets one run checks, and the sections it writes."""
 
-    def __init__(
-        self,
-        script: str,
-        args: argparse.Namespace | None = None,
-        doc: Path = BENCHMARKS,
-        *,
-        argv: list[str] | None = None,
-    ) -> None:
+    def __init__(self, script: str, args: argparse.Namespace | None, doc: Path) -> None:
         self.script = script
         self.doc = Path(doc)
         self.quick = bool(getattr(args, "quick", False))
         self.write = not (self.quick or getattr(args, "no_write", False))
-        self.argv = sys.argv[1:] if argv is None else list(argv)
         self.checks: list[Check] = []
-
-    @property
-    def command(self) -> str:
-        """The command line of this run, as the docs quote it."""
-        return shlex.join(["python", self.script, *self.argv])
 
     def check(self, target: Target, value: float, section: str | None = None) -> Check:
         """Record ``value`` against ``target``; the returned check reads "met" / "**missed**"."""
@@ -212,11 +197,10 @@ def replace_section(text: str, name: str, body: str) -> str:
     return text.rstrip() + "\n\n" + block + "\n"
 
 
-def write_section(name: str, body: str, doc: Path = DOC) -> None:
-    """Rewrite one section of ``doc`` (docs/benchmarks.md by default) and echo it."""
+def write_section(name: str, body: str, doc: Path) -> None:
+    """Rewrite one section of ``doc`` and echo it."""
     doc = Path(doc)
-    title = "# Benchmarks\n" if doc.name == "benchmarks.md" else f"# {doc.stem.title()}\n"
-    text = doc.read_text() if doc.exists() else title
+    text = doc.read_text() if doc.exists() else f"# {doc.stem.title()}\n"
     doc.write_text(replace_section(text, name, body))
     print(body)
 

@@ -241,7 +241,7 @@ def section_body(args, board, spec, runs: dict, seconds: float, report: Report) 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    report = Report("bench/accuracy_charuco.py", args, ACCURACY, argv=argv)
+    report = Report("bench/accuracy_charuco.py", args, ACCURACY)
     from endomeasure.features.boards import parse_board_spec
     from endomeasure.simulate.preset import load_preset
     from endomeasure.simulate.targets import target_from_preset

@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = script_parser(__doc__)
     parser.add_argument("--keep", type=Path, help="render and keep the noise-free set here")
     args = parser.parse_args(argv)
-    report = Report("bench/accuracy_detect.py", args, ACCURACY, argv=argv)
+    report = Report("bench/accuracy_detect.py", args, ACCURACY)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         renders = [("default noise", SAMPLES)]

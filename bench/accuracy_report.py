@@ -813,7 +813,7 @@ def write_report_json(work: Path, studies: Studies) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    report = Report("bench/accuracy_report.py", args, ACCURACY, argv=argv)
+    report = Report("bench/accuracy_report.py", args, ACCURACY)
     t0 = time.perf_counter()
     setup = prepare(args)
     zone_mm = args.zone_mm

@@ -777,7 +777,7 @@ bias of the detected calibration corners, left {bias["left"][0]:+.4f} px
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    report = Report("bench/accuracy_scene.py", args, ACCURACY, argv=argv)
+    report = Report("bench/accuracy_scene.py", args, ACCURACY)
     per_image = QUICK_PLANTED_PER_IMAGE if args.quick else PLANTED_PER_IMAGE
     tmp = tempfile.TemporaryDirectory()
     t0 = time.perf_counter()

@@ -84,7 +84,7 @@ def main(argv=None) -> int:
     ap.add_argument("--images", type=int, default=16, help="synthetic views (16)")
     ap.add_argument("--repeat", type=int, default=3, help="runs per calibration (3)")
     args = ap.parse_args(argv)
-    report = Report("bench/bench_calibrate.py", args, BENCHMARKS, argv=argv)
+    report = Report("bench/bench_calibrate.py", args, BENCHMARKS)
     if args.quick:
         args.images, args.repeat = min(args.images, QUICK_IMAGES), QUICK_REPEAT
     if args.session:

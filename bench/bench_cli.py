@@ -36,7 +36,7 @@ def wall_times(argv: list[str], runs: int = RUNS) -> list[float]:
 
 def main(argv: list[str] | None = None) -> int:
     args = script_parser(__doc__).parse_args(argv)
-    report = Report("bench/bench_cli.py", args, BENCHMARKS, argv=argv)
+    report = Report("bench/bench_cli.py", args, BENCHMARKS)
     runs = QUICK_RUNS if args.quick else RUNS
     script = shutil.which("endomeasure", path=str(Path(sys.executable).parent))
     help_argv = [script, "--help"] if script else [sys.executable, "-m", "endomeasure", "--help"]

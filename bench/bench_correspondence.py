@@ -88,7 +88,7 @@ def timed(fn, *args, **kwargs):
 
 def main(argv: list[str] | None = None) -> int:
     args = script_parser(__doc__, seed=SEED).parse_args(argv)
-    report = Report("bench/bench_correspondence.py", args, BENCHMARKS, argv=argv)
+    report = Report("bench/bench_correspondence.py", args, BENCHMARKS)
     n_random = QUICK_RANDOM_POINTS if args.quick else RANDOM_POINTS
     scenes = sorted(SCENES.glob("scene_*.json"))[: QUICK_IMAGES if args.quick else None]
     simulation = json.loads((ROOT / "sample_sessions" / "simulation.json").read_text())

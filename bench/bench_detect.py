@@ -374,7 +374,7 @@ def main(argv: list[str] | None = None) -> int:
         images = QUICK_ACCURACY_IMAGES if args.quick else DEFAULT_ACCURACY_IMAGES
         status = main(["accuracy", "--images", str(images), "--methods", DEFAULT_METHODS, *common])
         return max(status, main(["throughput", *common]))
-    report = Report("bench/bench_detect.py", args, BENCHMARKS, argv=argv)
+    report = Report("bench/bench_detect.py", args, BENCHMARKS)
     if args.command == "throughput":
         if args.images:
             files = sorted(

@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = script_parser(__doc__, seed=SEED)
     parser.add_argument("--points", type=int, default=N_POINTS, help=f"points ({N_POINTS:,})")
     args = parser.parse_args(argv)
-    report = Report("bench/bench_models.py", args, BENCHMARKS, argv=argv)
+    report = Report("bench/bench_models.py", args, BENCHMARKS)
     n_wanted = min(args.points, QUICK_POINTS) if args.quick else args.points
     rng = np.random.default_rng(args.seed)
     model = raytrace_model()

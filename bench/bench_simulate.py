@@ -309,11 +309,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--noisy", help="folder of a noisy simulate run (default: render now)")
     args = parser.parse_args(argv)
     if args.accuracy:
-        report = Report("bench/bench_simulate.py", args, ROOT / "docs" / "simulator.md", argv=argv)
+        report = Report("bench/bench_simulate.py", args, ROOT / "docs" / "simulator.md")
         sets = ["test"] if args.quick else ["calib", "test"]
         body = bench_accuracy(report, args.noisy, args.seed, sets)
         return report.finish({"simulator-accuracy": body})
-    report = Report("bench/bench_simulate.py", args, BENCHMARKS, argv=argv)
+    report = Report("bench/bench_simulate.py", args, BENCHMARKS)
     body = bench_render(report, QUICK_RENDER_RUNS if args.quick else 5)
     return report.finish({"simulate-render": body})
 

@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = script_parser(__doc__, seed=SEED)
     parser.add_argument("--n", type=int, default=N_POINTS, help=f"correspondences ({N_POINTS:,})")
     args = parser.parse_args(argv)
-    report = Report("bench/bench_triangulate.py", args, BENCHMARKS, argv=argv)
+    report = Report("bench/bench_triangulate.py", args, BENCHMARKS)
     if args.quick:
         args.n = min(args.n, QUICK_POINTS)
     rng = np.random.default_rng(args.seed)

@@ -157,7 +157,7 @@ noise ({ut}) and with the calibration too ({utc}); 10,000-point map under
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    report = Report("bench/bench_uncertainty.py", args, BENCHMARKS, argv=argv)
+    report = Report("bench/bench_uncertainty.py", args, BENCHMARKS)
 
     def runs(n: int) -> int:
         return min(n, QUICK_RUNS) if args.quick else n

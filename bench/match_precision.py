@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.noise_free:  # a diagnosis, not the section's figures
         args.no_write = True
-    report = Report("bench/match_precision.py", args, ACCURACY, argv=argv)
+    report = Report("bench/match_precision.py", args, ACCURACY)
     if args.quick:
         args.seeds, args.points = QUICK_SEEDS, min(args.points, QUICK_POINTS)
     work = args.work or Path(tempfile.mkdtemp(prefix="endomeasure-precision-"))

@@ -23,7 +23,7 @@ def _run(tmp_path: Path, value: float, *flags: str) -> tuple[int, str]:
     doc = tmp_path / "benchmarks.md"
     doc.write_text(DOC_BEFORE)
     args = common.script_parser("A script.\n\nMore text.", seed=3).parse_args(list(flags))
-    report = common.Report("bench/bench_x.py", args, doc, argv=list(flags))
+    report = common.Report("bench/bench_x.py", args, doc)
     check = report.check(UNDER_1_S, value)
     status = report.finish({SECTION: f"## Triangulation\n\nthis run: {check}."})
     return status, doc.read_text()
@@ -63,7 +63,7 @@ def test_a_missed_target_marks_only_its_own_section(tmp_path):
     doc = tmp_path / "accuracy.md"
     doc.write_text("# Accuracy\n")
     args = common.script_parser(None).parse_args([])
-    report = common.Report("bench/accuracy_x.py", args, doc, argv=[])
+    report = common.Report("bench/accuracy_x.py", args, doc)
     report.check(UNDER_1_S, 0.1, section="a")
     report.check(UNDER_1_S, 2.0, section="b")
     assert report.finish({"a": "A", "b": "B"}) == common.EXIT_MISSED
