@@ -105,7 +105,12 @@ from endomeasure.interpolation import (
     spline_coefficients,
     spline_sample,
 )
-from endomeasure.measure.epipolar import SPACING_PX, EpipolarCurve, epipolar_curve, other_half
+from endomeasure.measure.epipolar import (
+    DEPTH_RANGE_MM,
+    EpipolarCurve,
+    epipolar_curve,
+    other_half,
+)
 
 if TYPE_CHECKING:
     from endomeasure.models.base import CameraModel
@@ -325,7 +330,7 @@ class MatchSettings:
         For a depth range, patch size or warp that is not valid.
     """
 
-    depth_range_mm: tuple[float, float] = (8.0, 60.0)
+    depth_range_mm: tuple[float, float] = DEPTH_RANGE_MM
     patch: int = defaults.PATCH_PX
     warp: str = "plane"
     min_score: float = MIN_SCORE
@@ -364,9 +369,9 @@ class MatchSettings:
         ):  # fmt: skip
             object.__setattr__(self, name, value)
 
-    @property
+    @functools.cached_property
     def offsets(self) -> np.ndarray:
-        """Patch sample offsets, shape (patch * patch, 2), px, row-major."""
+        """Patch sample offsets, shape (patch * patch, 2), px, row-major (built once)."""
         r = self.patch // 2
         dv, du = np.mgrid[-r : r + 1, -r : r + 1]
         return np.stack([du.ravel(), dv.ravel()], axis=-1).astype(np.float64)
@@ -642,7 +647,7 @@ def _signal_score(ncc, template_pos, template_raw, other_pos, other_raw, offsets
 
 def _search(model, grey, pixel, half: Half, settings: MatchSettings) -> _Search | None:
     """Correlate the patch at ``pixel`` along its curve in the other half."""
-    curve = epipolar_curve(model, pixel, half, settings.depth_range_mm, SPACING_PX)
+    curve = epipolar_curve(model, pixel, half, settings.depth_range_mm)
     m = curve.pixels.shape[0]
     if m == 0:
         return None

@@ -30,7 +30,18 @@ from endomeasure.conventions import Half, Status
 if TYPE_CHECKING:
     from endomeasure.models.base import CameraModel
 
-__all__ = ["EpipolarCurve", "epipolar_curve", "other_half", "SPACING_PX", "COARSE_SAMPLES"]
+__all__ = [
+    "EpipolarCurve",
+    "epipolar_curve",
+    "other_half",
+    "SPACING_PX",
+    "COARSE_SAMPLES",
+    "DEPTH_RANGE_MM",
+]
+
+DEPTH_RANGE_MM = (8.0, 60.0)
+"""Default depths a curve spans, mm: around the working range of the paper's probe
+(10-45 mm); a probe that works nearer or farther needs its own range."""
 
 SPACING_PX = 0.4
 """Default largest distance between consecutive curve samples: below half a pixel, so the
@@ -101,7 +112,7 @@ def epipolar_curve(
     model: CameraModel,
     pixel: np.ndarray,
     half: Half | str,
-    depth_range_mm: tuple[float, float] = (8.0, 60.0),
+    depth_range_mm: tuple[float, float] = DEPTH_RANGE_MM,
     spacing_px: float = SPACING_PX,
 ) -> EpipolarCurve:
     """Sample a pixel's ray over a depth range and project it into the other half.
