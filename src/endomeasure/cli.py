@@ -931,8 +931,13 @@ def predict_error(
     ] = "x-segment",
     size_mm: Annotated[float, typer.Option("--size-mm", help="Map: template size, mm.")] = 1.0,
     depths: Annotated[
-        str, typer.Option("--depths", help="Map: START:STOP:STEP or z1,z2,... in mm.")
-    ] = "10:45:5",
+        str | None,
+        typer.Option(
+            "--depths",
+            help="Map: START:STOP:STEP or z1,z2,... in mm (default: 8 planes over the "
+            "calibration's depths; 10:45:5 for a model file).",
+        ),
+    ] = None,
     grid: Annotated[
         str, typer.Option("--grid", help="Map: NU,NV grid over the left half.")
     ] = "24,18",
@@ -993,7 +998,7 @@ def predict_error(
         model_file=model_file,
         template=template,
         size_mm=size_mm,
-        depths=parse_depths(depths),
+        depths=None if depths is None else parse_depths(depths),
         grid=parse_grid(grid),
         noise=noise,
         plot=plot,

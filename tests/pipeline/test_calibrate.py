@@ -207,3 +207,27 @@ def test_options_no_model_to_calibrate_can_take_are_refused(session, tmp_path, a
     assert result.exit_code == 2, result.output
     assert message in result.stderr
     assert session.read_bytes() == before
+
+
+MAP_DEPTH_TOL_MM = 0.2  # rounding to 0.1 mm plus the fitted poses' error
+
+
+def test_a_map_spans_the_depths_the_calibration_saw(calibrated, session, tmp_path):
+    truth = perturbed_raytrace_truth()
+    data = synthetic_views(truth, np.random.default_rng(21), n_images=12, noise_px=NOISE_PX)
+    z = np.concatenate(
+        [
+            (data.boards[v.board] @ R.T + t)[np.concatenate(v.ids)][:, 2]
+            for v, (R, t) in zip(data.views, data.poses, strict=True)
+        ]
+    )
+    copy = tmp_path / "map.h5"
+    copy.write_bytes(session.read_bytes())
+    result = runner.invoke(
+        cli.app, ["predict-error", str(copy), "--map", "--model", "raytrace", "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    depths = json.loads(result.stdout)["depths"]
+    assert len(depths) == 8
+    assert depths[0] == pytest.approx(z.min(), abs=MAP_DEPTH_TOL_MM)
+    assert depths[-1] == pytest.approx(z.max(), abs=MAP_DEPTH_TOL_MM)

@@ -169,12 +169,16 @@ class CalibratedModel:
     sigma_px : float or None
         Image noise estimated from the calibration residuals (``sqrt(SSR / dof)`` per
         coordinate), px.
+    depth_range_mm : (float, float) or None
+        Nearest and farthest depth of the calibration's inlier corners in the model
+        frame, mm: where the calibration has seen the board.
     """
 
     name: str
     model: Any
     param_cov: np.ndarray | None
     sigma_px: float | None
+    depth_range_mm: tuple[float, float] | None = None
 
 
 def load_calibrated_model(reader, name: str, session: str | Path) -> CalibratedModel:
@@ -211,7 +215,24 @@ def load_calibrated_model(reader, name: str, session: str | Path) -> CalibratedM
         if variance is not None and np.isfinite(variance) and variance > 0
         else None
     )
-    return CalibratedModel(name, model, cov, sigma)
+    return CalibratedModel(name, model, cov, sigma, _calibration_depths(record))
+
+
+def _calibration_depths(record: ModelRecord) -> tuple[float, float] | None:
+    """Depth range (mm) of the inlier corners a calibration record holds, if it holds them."""
+    from endomeasure.geometry.rotations import rotation_matrix
+
+    a = record.arrays
+    if not all(k in a for k in ("rvecs", "tvecs", "obs_image", "obs_board_points")):
+        return None
+    image = np.asarray(a["obs_image"], dtype=np.int64)
+    rvecs, tvecs = np.asarray(a["rvecs"]), np.asarray(a["tvecs"])
+    X = np.asarray(a["obs_board_points"], dtype=np.float64)
+    z = np.einsum("nj,nj->n", rotation_matrix(rvecs)[image][:, 2], X) + tvecs[image, 2]
+    if "inliers" in a:
+        z = z[np.asarray(a["inliers"]).astype(bool)]
+    z = z[np.isfinite(z)]
+    return (float(z.min()), float(z.max())) if z.size else None
 
 
 # ----- measurement records ----------------------------------------------------------------------

@@ -40,8 +40,11 @@ __all__ = [
 ]
 
 DEFAULT_DEPTHS_MM = (10.0, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0, 45.0)
-"""Depth planes of a map, mm: the working range of the paper's probe (SPEC section 2);
-``--depths 10:45:5``."""
+"""Depth planes of a map of a model file, which brings no calibration to say where the
+probe works, mm: the working range of the paper's probe (SPEC section 2)."""
+MAP_PLANES = 8
+"""Depth planes of a map over the depths where its calibration saw the board (when
+``--depths`` is not given)."""
 
 MC_SAMPLES = 20_000
 """Monte Carlo samples when ``--samples`` is not given."""
@@ -383,7 +386,7 @@ def predict_map(
     model_file: str | Path | None = None,
     template: str = "x-segment",
     size_mm: float = 1.0,
-    depths: Sequence[float] = DEFAULT_DEPTHS_MM,
+    depths: Sequence[float] | None = None,
     grid: tuple[int, int] = (24, 18),
     noise: NoiseAssumptions = NoiseAssumptions(),  # noqa: B008 (immutable)
     plot: str | Path | None = None,
@@ -394,7 +397,9 @@ def predict_map(
     Either a calibrated ``model`` of ``session`` (with its covariance unless
     ``noise.calibration=False``, and its residual sigma by default) or ``model_file``, a
     JSON model with nominal parameters (no covariance; ``noise.sigma`` must be given).
-    ``depths``: the planes of the grid, mm; ``grid``: (NU, NV) pixels over the left half.
+    ``depths``: the planes of the grid, mm (default: ``MAP_PLANES`` planes over the depths
+    where the calibration saw the board, or for a model file the paper's working range,
+    ``DEFAULT_DEPTHS_MM``); ``grid``: (NU, NV) pixels over the left half.
     """
     from endomeasure.io.export import write_map_csv
     from endomeasure.measure.predict import TEMPLATES, error_map, volume_grid
@@ -406,10 +411,13 @@ def predict_map(
     n_u, n_v = grid
     if n_u < 2 or n_v < 2:
         raise BadInputError(f"the map grid needs at least 2x2 points, got {n_u}x{n_v}")
+    cam, cm, source, name = _map_model(session, model, model_file)
+    if depths is None:
+        seen = None if cm is None else cm.depth_range_mm
+        depths = DEFAULT_DEPTHS_MM if seen is None else np.linspace(*seen, MAP_PLANES).round(1)
     z = np.asarray(depths, dtype=float)
     if z.size == 0 or not np.all(np.isfinite(z) & (z > 0)):
         raise BadInputError(f"depths must be positive numbers of mm, got {list(depths)}")
-    cam, cm, source, name = _map_model(session, model, model_file)
     param_cov = None if cm is None else cm.param_cov
     image_noise = noise.image_noise(cm, "a model file" if cm is None else f"model {model!r}")
     centres = volume_grid(cam, z, n_u, n_v)
