@@ -39,6 +39,9 @@ from endomeasure.measure.kinds import evaluate
 
 __all__ = [
     "BOARD_KINDS",
+    "checked_zone_mm",
+    "zone_bounds",
+    "zone_index",
     "BoardImage",
     "BoardStencils",
     "BoardTestTable",
@@ -357,6 +360,14 @@ def zone_index(z: np.ndarray | float, zone_mm: float) -> np.ndarray:
     return np.floor(np.asarray(z, dtype=np.float64) / zone_mm)
 
 
+def checked_zone_mm(zone_mm: float) -> float:
+    """A zone width, checked: a positive finite number of mm (BadInputError if not)."""
+    zone_mm = float(zone_mm)
+    if not (np.isfinite(zone_mm) and zone_mm > 0):
+        raise BadInputError(f"the zone width must be a positive number of mm, not {zone_mm}")
+    return zone_mm
+
+
 def zone_bounds(k, zone_mm: float) -> tuple[float, float]:
     """``(start, end)`` of distance zone ``k`` (:func:`zone_index`), mm."""
     return float(k * zone_mm), float((k + 1) * zone_mm)
@@ -392,8 +403,7 @@ def zone_summary(
     ZoneSummary
         Rows ordered by model (as given), kind (as in :data:`BOARD_KINDS`), zone.
     """
-    if not (np.isfinite(zone_mm) and zone_mm > 0):
-        raise BadInputError(f"the zone width must be a positive number of mm, got {zone_mm}")
+    zone_mm = checked_zone_mm(zone_mm)
     cols: dict[str, list] = {k: [] for k in ZoneSummary._fields}
     for model, table in tables.items():
         valid = np.isfinite(table.error) & np.isfinite(table.z_mean)

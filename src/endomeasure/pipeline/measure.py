@@ -508,9 +508,9 @@ def board_test(
     from endomeasure.io.records import board_test_record, load_calibrated_model
     from endomeasure.io.session import edit_session, open_session
     from endomeasure.measure.board_runs import board_sets, run_board_test
+    from endomeasure.measure.board_test import checked_zone_mm
 
-    if not (math.isfinite(zone_mm) and zone_mm > 0):
-        raise BadInputError(f"the zone width must be a positive number of mm, not {zone_mm}")
+    zone_mm = checked_zone_mm(zone_mm)
     with open_session(session) as reader:
         names = _models_to_run(reader, model, session)
         models = {n: load_calibrated_model(reader, n, session).model for n in names}

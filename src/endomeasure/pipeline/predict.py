@@ -17,7 +17,6 @@ SPEC section 8, the paper's Section 4.
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -191,10 +190,9 @@ def predict_board_test(
     from endomeasure.io.records import board_prediction_record, load_calibrated_model
     from endomeasure.io.session import edit_session, open_session
     from endomeasure.measure.board_runs import prediction_zones, within_band
+    from endomeasure.measure.board_test import checked_zone_mm
 
-    zone = float(zone_mm) if zone_mm is not None else defaults.ZONE_MM
-    if not (math.isfinite(zone) and zone > 0):
-        raise BadInputError(f"the zone width must be a positive number of mm, not {zone}")
+    zone = checked_zone_mm(defaults.ZONE_MM if zone_mm is None else zone_mm)
     with open_session(session) as reader:
         cm = load_calibrated_model(reader, model, session)
         image_noise = noise.image_noise(cm, f"model {model!r}")  # checked before any work
