@@ -302,9 +302,6 @@ def predict_stored_measurement(
 class MapReport:
     source: str
     model: str
-    template: str
-    size_mm: float
-    true: float
     method: str
     noise: Any  # ImageNoise
     calibration: bool
@@ -313,6 +310,18 @@ class MapReport:
     plot: str | None
     csv: str | None
     error_map: Any = dataclasses.field(repr=False)  # ErrorMap
+
+    @property
+    def template(self) -> str:
+        return self.error_map.template
+
+    @property
+    def size_mm(self) -> float:
+        return self.error_map.size_mm
+
+    @property
+    def true(self) -> float:
+        return self.error_map.true
 
     def to_dict(self, points: bool = True) -> dict[str, Any]:
         d = {
@@ -434,7 +443,7 @@ def predict_map(
         written_plot = str(plot_error_map(em, plot))
     written_csv = None if csv is None else str(write_map_csv(em, csv))
     return MapReport(
-        source, name, template, float(size_mm), em.true, noise.method, image_noise,
+        source, name, noise.method, image_noise,
         noise.calibration and param_cov is not None, [float(d) for d in z], _per_depth(em, z),
         written_plot, written_csv, em,
     )  # fmt: skip
