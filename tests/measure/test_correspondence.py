@@ -542,7 +542,7 @@ def test_back_search_confirms_only_with_a_credible_score():
     pixels = np.stack([np.linspace(10, 60, m), np.full(m, 20.0)], -1)  # 1.02 px apart
     curve = EpipolarCurve(pixels, np.linspace(60, 8, m), np.zeros((m, 3)),
                           np.zeros(m, np.uint8), np.zeros(3), np.array([0, 0, 1.0]), 0)  # fmt: skip
-    settings = MatchSettings((8, 60), 15, "plane", 0.8, 0.9, 0.15)
+    settings = MatchSettings()
     query = pixels[10]
     flat = np.full(m, 0.15)  # what a point the other half does not see meets
     flat[30] = 0.17  # best, 20 px away; the query scores 0.88 of it

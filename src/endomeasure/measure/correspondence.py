@@ -1318,8 +1318,8 @@ def find_matches(
     Raises
     ------
     BadInputError
-        For an image that does not fit the model, a point outside its half or invalid
-        settings.
+        For an image that does not fit the model or a point outside its half (settings
+        are checked when a :class:`MatchSettings` is made).
     """
     half = Half.parse(half)
     image = _grey(image, model)
