@@ -365,11 +365,11 @@ def measure_points(
     from endomeasure.measure.kinds import measure
 
     request = _checked_request(kind, left, right, warn_percent, plot)
+    n = _check_count(request, kind)  # before any image is read
     with open_session(session) as reader:
         reader.image_info(image)  # an unknown image is a BadInputError listing the images
         cm = records.load_calibrated_model(reader, model_name, session)
         image_pixels = reader.image(image) if request.search else None
-    n = _check_count(request, kind)
     ql, qr, matches, written = _pixel_pairs(cm.model, request, image_pixels, patch, plot)
     tri = _triangulated(cm.model, model_name, ql, qr)
     value = measure(kind, tri.points)
