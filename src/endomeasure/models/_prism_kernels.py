@@ -214,7 +214,7 @@ def lens_jacobians(xy, points, faces, n_glass, dxy_dp):
             dxy_dp[i, :, :] = _NAN
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _broyden(x, y, ex, ey, s, b11, b12, b21, b22, faces, n_glass, px, py, pz, tol_x, tol_y,
              max_iter):  # fmt: skip
     """Broyden's iteration from lens coordinates (x, y) with offset (ex, ey) and inverse
@@ -263,24 +263,19 @@ def _broyden(x, y, ex, ey, s, b11, b12, b21, b22, faces, n_glass, px, py, pz, to
     return x, y, s, result
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _pixel(x, y, result, lens, r2_max, out):
-    """The pixel of a converged aim into ``out`` (2,), NaN unless OK; returns the status
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _pixel(x, y, result, lens, r2_max):
+    """The pixel ``(u, v)`` of a converged aim, NaN unless OK, and the status
     (``OUTSIDE_HALF`` beyond the distortion's fold-back radius ``r2_max``)."""
-    if result == _OK:
-        r2 = x * x + y * y
-        if r2 > r2_max:
-            result = _OUTSIDE
-        else:
-            radial = 1.0 + r2 * (lens[4] + r2 * (lens[5] + r2 * lens[8]))
-            xd = x * radial + 2.0 * lens[6] * x * y + lens[7] * (r2 + 2.0 * x * x)
-            yd = y * radial + lens[6] * (r2 + 2.0 * y * y) + 2.0 * lens[7] * x * y
-            out[0] = lens[0] * xd + lens[2]
-            out[1] = lens[1] * yd + lens[3]
     if result != _OK:
-        out[0] = _NAN
-        out[1] = _NAN
-    return result
+        return _NAN, _NAN, result
+    r2 = x * x + y * y
+    if r2 > r2_max:
+        return _NAN, _NAN, _OUTSIDE
+    radial = 1.0 + r2 * (lens[4] + r2 * (lens[5] + r2 * lens[8]))
+    xd = x * radial + 2.0 * lens[6] * x * y + lens[7] * (r2 + 2.0 * x * x)
+    yd = y * radial + lens[6] * (r2 + 2.0 * y * y) + 2.0 * lens[7] * x * y
+    return lens[0] * xd + lens[2], lens[1] * yd + lens[3], result
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -333,6 +328,11 @@ def aim_rays(
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         xy[i, 0] = _NAN
         xy[i, 1] = _NAN
+        if want_pixels:  # a point skipped below keeps NaN
+            pixels[i, 0] = _NAN
+            pixels[i, 1] = _NAN
+        if want_jac:
+            dxy_dp[i, :, :] = _NAN
         # the point must lie beyond the front face, and in front of the virtual centre
         rz = pz - centre[2]
         if not (px * faces[4] + py * faces[5] + pz * faces[6] > faces[7] and rz > 0.0):
@@ -361,7 +361,7 @@ def aim_rays(
         x, y, s, result = _broyden(x, y, ex, ey, s, b11, b12, b21, b22, faces, n_glass,
                                    px, py, pz, tol_x, tol_y, max_iter)  # fmt: skip
         if want_pixels:
-            result = _pixel(x, y, result, lens, r2_max, pixels[i])
+            pixels[i, 0], pixels[i, 1], result = _pixel(x, y, result, lens, r2_max)
         status[i] = result
         if result == _OK:
             xy[i, 0] = x

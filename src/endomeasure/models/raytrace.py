@@ -601,9 +601,9 @@ def aim_rays(
         aim = model.aim_map(half, fine=points.shape[0] >= _FINE_TABLE_MIN_POINTS)
     xy = np.empty((points.shape[0], 2))
     status = np.empty(points.shape[0], dtype=STATUS_DTYPE)
-    dxy_dp = np.full((points.shape[0] if jacobian else 0, 2, 3), np.nan)
+    dxy_dp = np.empty((points.shape[0] if jacobian else 0, 2, 3))
     start = np.empty((0, 2)) if start is None else np.ascontiguousarray(start, dtype=np.float64)
-    q = np.full((points.shape[0] if pixels else 0, 2), np.nan)  # rows the kernel skips stay NaN
+    q = np.empty((points.shape[0] if pixels else 0, 2))  # the kernel NaNs skipped rows
     lens = model.lens()
     r2_max = max_monotonic_radius2(model.k1, model.k2, model.k3)
     _prism_kernels.aim_rays(
