@@ -209,6 +209,10 @@ class CameraModel(abc.ABC):
     """Unit of each parameter by name: ``px``, ``mm``, ``rad`` or ``1``."""
     GROUPS: ClassVar[dict[str, slice]] = {}
     DEFAULT_FIXED: ClassVar[frozenset[str]] = frozenset()
+    EXTENSIONS: ClassVar[tuple[tuple[str, ...], ...]] = ()
+    """Groups of ``DEFAULT_FIXED`` parameters that calibration may free when the data
+    call for them (tried in this order, each kept only if held-out images or the
+    information criterion say it helps; see ``solvers.calibrate``)."""
     SEEDED_FROM: ClassVar[str | None] = None
     """Registry name of the model whose calibration this one's start is built from;
     None: the start is built from the detections alone."""
