@@ -234,6 +234,7 @@ class RaytraceModel(CameraModel):
         "n_glass": "1",
     }  # fmt: skip
     DEFAULT_FIXED: ClassVar[frozenset[str]] = frozenset({"k3", "p1", "p2", "n_glass"})
+    EXTENSIONS: ClassVar[tuple[tuple[str, ...], ...]] = (("k3",), ("p1", "p2"))
     SEEDED_FROM: ClassVar[str | None] = "pinhole"
     PROJECTOR: ClassVar[type[Projector]] = _AimingProjector
 
