@@ -143,7 +143,7 @@ def test_set_cuts_a_board_larger_than_the_view_in_both_halves(default_preset, ch
 
 
 def test_truth_document_pixels_trace_back_and_are_null_outside(default_preset, charuco_plan):
-    model = default_preset.truth_model
+    model = default_preset.truth_optics
     shot = charuco_plan[0]
     doc = image_truth(default_preset, shot, "charuco_000.png", {"noise_free": True})
     board = shot.target

@@ -28,7 +28,7 @@ def test_sample_pattern_is_centred_symmetric_and_n_rooks(n):
 
 
 def test_apex_columns_mark_where_the_exit_face_changes(default_preset):
-    model = default_preset.truth_model
+    model = default_preset.truth_optics
     rows = np.array([10.0, 240.0, 470.0])
     cols = apex_columns(model, rows)
     assert np.all(np.isfinite(cols))
@@ -36,8 +36,8 @@ def test_apex_columns_mark_where_the_exit_face_changes(default_preset):
     assert np.ptp(cols) < 3.0
 
 
-def test_bundle_rays_are_the_truth_models_rays(default_preset):
-    model = default_preset.truth_model
+def test_bundle_rays_are_the_truth_optics_rays(default_preset):
+    model = default_preset.truth_optics
     split = model.config.split
     region = Region(split - 3, 200, split + 3, 203)
     n = default_preset.supersampling

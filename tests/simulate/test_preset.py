@@ -48,7 +48,7 @@ def test_front_faces_meet_at_the_apex_point(default_preset):
 
 def test_split_is_the_column_boundary_nearest_the_apex_image(default_preset):
     height = default_preset.image_size[1]
-    u_apex = apex_columns(default_preset.truth_model, np.array([(height - 1) / 2.0]))[0]
+    u_apex = apex_columns(default_preset.truth_optics, np.array([(height - 1) / 2.0]))[0]
     assert abs((default_preset.split - 0.5) - u_apex) <= 0.5
     # the apex is off axis, so the halves are not equal
     assert default_preset.split != default_preset.image_size[0] // 2

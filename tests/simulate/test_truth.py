@@ -29,7 +29,7 @@ def _distance_to_rays(model, pixels, points, half):
 
 
 def test_true_pixels_trace_back_through_their_corners(default_preset, plans):
-    model = default_preset.truth_model
+    model = default_preset.truth_optics
     checked = 0
     for shot in plans["calib"][::3] + plans["test"][::3]:
         corners = shot.target.corners_camera
@@ -119,7 +119,7 @@ def test_board_truth_document(default_preset, plans):
 
 def test_renderer_geometry_hits_the_true_corners(default_preset, plans):
     """The intersection code the renderer uses puts each true corner where the truth says."""
-    model = default_preset.truth_model
+    model = default_preset.truth_optics
     checked = 0
     for shot in plans["calib"][::4]:
         board = shot.target
@@ -134,7 +134,7 @@ def test_renderer_geometry_hits_the_true_corners(default_preset, plans):
 
 
 def test_scene_marks_are_on_the_surface_and_seen_in_both_halves(default_preset, plans):
-    model = default_preset.truth_model
+    model = default_preset.truth_optics
     for shot in plans["scene"]:
         doc = image_truth(default_preset, shot, "scene.png", {})
         marks = np.array(doc["marks"]["points_mm"])

@@ -1,7 +1,8 @@
 """Ground-truth optics for rendering: supersampled ray bundles and the apex image.
 
 The optics never change between images of one preset, so the object-space rays of all
-sub-pixel samples are traced once through the truth model and kept (as float32: the
+sub-pixel samples are traced once through the truth optics
+(:class:`~endomeasure.simulate.truth_optics.TruthOptics`) and kept (as float32: the
 rounding moves a ray by about 1e-7 rad, i.e. 3e-5 px, far below anything measured).
 """
 
@@ -14,9 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from endomeasure.conventions import Half, Status
-from endomeasure.geometry.distortion import undistort
-from endomeasure.geometry.rays import intersect_plane, refract
-from endomeasure.models.raytrace import RaytraceModel
+from endomeasure.simulate.truth_optics import TruthOptics
 
 __all__ = [
     "RayBundle",
@@ -58,80 +57,14 @@ def sample_offsets(n: int) -> np.ndarray:
     return np.stack([du.ravel(), dv.ravel()], axis=-1)
 
 
-def _lens_directions(model: RaytraceModel, u: np.ndarray, v: np.ndarray):
-    """Undistorted normalised lens coordinates of pixels, NaN where undistortion fails."""
-    p = model.named_params()
-    und = undistort(
-        (u - p["cx"]) / p["fx"],
-        (v - p["cy"]) / p["fy"],
-        (p["k1"], p["k2"], p["p1"], p["p2"], p["k3"]),
-        1e-12,
-    )
-    return und.x, und.y
-
-
-def apex_columns(model: RaytraceModel, rows: np.ndarray, window_px: float = 60.0) -> np.ndarray:
-    """Image column where the prism apex appears, for each row.
+def apex_columns(optics: TruthOptics, rows: np.ndarray) -> np.ndarray:
+    """Image column where the prism apex appears, for each row (R,) px; NaN where none.
 
     A lens ray entering the glass leaves it through the front face it meets first; the
-    apex image is where it meets both at once. Found per row by locating the sign
-    change of ``t_left - t_right`` (the distances to the two face planes inside the
-    glass) near the model's split and refining it by the secant method.
-
-    Parameters
-    ----------
-    model : RaytraceModel
-    rows : ndarray, shape (R,), px
-        Row coordinates ``v``.
-    window_px : float
-        Half-width of the search window around ``split - 0.5``, px.
-
-    Returns
-    -------
-    ndarray, shape (R,), px
-        Column ``u`` of the apex image; NaN where no crossing lies in the window.
+    apex image is where it meets both at once
+    (:meth:`~endomeasure.simulate.truth_optics.TruthOptics.apex_columns`).
     """
-    rows = np.asarray(rows, dtype=np.float64).reshape(-1)
-    n_rear, d_rear = model.face("rear")
-    n_left, d_left = model.face("left")
-    n_right, d_right = model.face("right")
-
-    def gap(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        x, y = _lens_directions(model, u, v)
-        d0 = np.stack([x, y, np.ones_like(x)], axis=-1)
-        d0 /= np.linalg.norm(d0, axis=-1, keepdims=True)
-        entry = intersect_plane(np.zeros(3), d0, n_rear, d_rear)
-        inside = refract(d0, n_rear, 1.0 / model.n_glass)
-        t_left = (d_left - entry.points @ n_left) / (inside.directions @ n_left)
-        t_right = (d_right - entry.points @ n_right) / (inside.directions @ n_right)
-        return t_left - t_right
-
-    centre = model.config.split - 0.5
-    u = np.linspace(centre - window_px, centre + window_px, 241)
-    uu, vv = np.meshgrid(u, rows)
-    g = gap(uu, vv)
-    out = np.full(rows.shape, np.nan)
-    for r in range(rows.size):
-        sign = np.sign(g[r])
-        change = np.flatnonzero((sign[:-1] < 0) & (sign[1:] > 0))
-        if change.size == 0:
-            continue
-        k = change[0]
-        a, b = u[k], u[k + 1]
-        ga, gb = g[r, k], g[r, k + 1]
-        for _ in range(30):  # secant / regula falsi on a smooth monotone function
-            m = b - gb * (b - a) / (gb - ga)
-            gm = gap(np.array([m]), np.array([rows[r]]))[0]
-            if abs(gm) < 1e-13 or not np.isfinite(gm):
-                break
-            if gm < 0:
-                a, ga = m, gm
-            else:
-                b, gb = m, gm
-            if b - a < 1e-9:
-                break
-        out[r] = m
-    return out
+    return optics.apex_columns(rows)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,12 +110,12 @@ class RayBundle(NamedTuple):
 
 
 def trace_region(
-    model: RaytraceModel, region: Region, supersampling: int, chunk_rays: int = 262144
+    model: TruthOptics, region: Region, supersampling: int, chunk_rays: int = 262144
 ) -> RayBundle:
     """Trace the rays of all sub-pixel samples of a region through the truth optics.
 
     Each pixel's samples are traced through the front face of the pixel's own half
-    (by its column and the model's split), as the model does for any pixel.
+    (by its column and the split), as the calibrated models do for any pixel.
     """
     region.check(model.config.image_size)
     offsets = sample_offsets(supersampling)
@@ -213,8 +146,8 @@ def trace_region(
                 directions[k, r0 + rr, cc] = d[..., k]
             valid[r0 + rr, cc] = ok.reshape(-1, S)
     uu, vv = np.meshgrid(cols.astype(np.float64), np.arange(region.v0, region.v1, dtype=np.float64))
-    x, y = _lens_directions(model, uu, vv)
-    cos_lens = np.nan_to_num(1.0 / np.sqrt(1.0 + x * x + y * y), nan=0.0)
+    x, y, ok = model.lens.pixel_to_ideal(uu.ravel(), vv.ravel())
+    cos_lens = np.where(ok, 1.0 / np.sqrt(1.0 + x * x + y * y), 0.0).reshape(uu.shape)
     return RayBundle(region, origins, directions, valid, cos_lens)
 
 
@@ -223,11 +156,16 @@ _CACHE_LOCK = threading.Lock()
 _CACHE_MAX = 2  # bundles kept; a full 640x480 4x4 bundle is about 120 MB
 
 
-def ray_bundle(model: RaytraceModel, region: Region, supersampling: int, chunk_rays: int = 262144):
-    """:func:`trace_region`, cached per model parameters, configuration, region and sampling."""
+def _optics_key(optics: TruthOptics) -> tuple:
+    """Hashable identity of the truth optics' numbers."""
+    planes = tuple((p.normal.tobytes(), p.d) for p in (optics.rear, optics.left, optics.right))
+    return (repr(optics.lens), planes, optics.n_glass)
+
+
+def ray_bundle(model: TruthOptics, region: Region, supersampling: int, chunk_rays: int = 262144):
+    """:func:`trace_region`, cached per optics, configuration, region and sampling."""
     key = (
-        model.NAME,
-        model.params.tobytes(),
+        _optics_key(model),
         model.config.image_size,
         model.config.split,
         dataclasses.astuple(region),

@@ -6,11 +6,13 @@ Built-in presets live in ``endomeasure/simulate/presets/NAME.json`` and are read
 :mod:`importlib.resources`; any other JSON file of the same form can be given by path.
 ``docs/simulator.md`` explains every number of the default preset.
 
-The ground-truth optics is a :class:`~endomeasure.models.raytrace.RaytraceModel` with
-the terms the calibrated models lack switched on (``k3``, ``p1``, ``p2``), its faces
-tilted off the nominal design and its apex off the optical axis. The prism is given
-physically: the front faces both pass through the apex point, so their distances
-``d = n . apex`` follow from the tilts; the split column is where the apex images.
+The ground-truth optics is :class:`~endomeasure.simulate.truth_optics.TruthOptics`, the
+simulator's own tracer (not the calibrated models' code), with the effects the models lack
+(``k3 k4 p1 p2``, distortion defined either way, a moving pupil, general faces). The
+prism is given physically: a front face without ``d_mm`` passes through the apex point
+(moved by ``offset_mm`` along its normal), so ``d = n . apex + offset``; the split
+column is where the apex images. :attr:`Preset.truth_model` is the nearest
+``raytrace`` model, the truth itself where that family can hold it.
 """
 
 from __future__ import annotations
@@ -28,7 +30,8 @@ import numpy as np
 
 from endomeasure.errors import BadInputError
 from endomeasure.models.base import ModelConfig
-from endomeasure.models.raytrace import RaytraceModel, plane_normal
+from endomeasure.models.raytrace import RaytraceModel
+from endomeasure.simulate.truth_optics import LensMap, Plane, TruthConfig, TruthLens, TruthOptics
 
 __all__ = [
     "Preset",
@@ -172,7 +175,7 @@ class Preset:
             )
         preset = cls(copy.deepcopy(data), source)
         try:
-            preset.truth_model  # noqa: B018 - validates the optics now, not mid-render
+            preset.truth_optics  # noqa: B018 - validates the optics now, not mid-render
             preset.supersampling  # noqa: B018
         except (KeyError, TypeError, ValueError) as exc:
             raise BadInputError(
@@ -253,34 +256,83 @@ class Preset:
         """A point of the apex line (where the front faces meet), mm, camera frame."""
         return np.asarray(self.prism["apex_mm"], dtype=np.float64)
 
-    def _truth_params(self) -> np.ndarray:
-        lens, prism = self.lens, self.prism
-        values = {k: float(lens[k]) for k in ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "p1", "p2")}
-        rear = prism["rear_face"]
-        values.update(
-            rear_a=np.radians(rear["a_deg"]), rear_b=np.radians(rear["b_deg"]), rear_d=rear["d_mm"]
+    def _face(self, name: str) -> Plane:
+        """A prism face from the preset: ``normal`` or tilts ``a_deg b_deg`` (normal
+        ``(tan a, tan b, 1)``), and ``d_mm``, or for a front face without ``d_mm`` the
+        plane through the apex point moved by ``offset_mm`` (default 0) along its normal."""
+        face = self.prism[f"{name}_face"]
+        if "normal" in face:
+            normal = np.asarray(face["normal"], dtype=np.float64)
+        else:
+            normal = np.array(
+                [np.tan(np.radians(face["a_deg"])), np.tan(np.radians(face["b_deg"])), 1.0]
+            )
+        normal = normal / np.linalg.norm(normal)
+        if "d_mm" in face:
+            d = float(face["d_mm"])
+        elif name == "rear":
+            raise KeyError("rear_face.d_mm")
+        else:
+            d = float(normal @ self.apex_point) + float(face.get("offset_mm", 0.0))
+        return Plane.make(normal, d)
+
+    def _truth_lens(self) -> TruthLens:
+        lens = self.lens
+        radial = tuple(float(lens.get(k, 0.0)) for k in ("k1", "k2", "k3", "k4"))
+        shift = float(lens.get("pupil_shift_mm", 0.0))
+        return TruthLens(
+            fx=float(lens["fx"]), fy=float(lens["fy"]), cx=float(lens["cx"]), cy=float(lens["cy"]),
+            distortion=LensMap(radial, float(lens.get("p1", 0.0)), float(lens.get("p2", 0.0))),
+            direction=str(lens.get("distortion_direction", "ray_to_pixel")),
+            pupil_shift_mm=shift,
+            pupil_edge_rad=np.radians(float(lens.get("pupil_edge_deg", 45.0))),
+        )  # fmt: skip
+
+    @cached_property
+    def truth_optics(self) -> TruthOptics:
+        """The ground-truth optics (:mod:`.truth_optics`), its split at the apex image."""
+        width, height = self.image_size
+        provisional = TruthOptics(
+            self._truth_lens(), self._face("rear"), self._face("left"), self._face("right"),
+            float(self.prism["n_glass"]), TruthConfig((width, height), width // 2),
+        )  # fmt: skip
+        return provisional.with_split(provisional.apex_split())
+
+    @property
+    def split(self) -> int:
+        """First column of the right half: the column boundary nearest the apex image."""
+        return self.truth_optics.config.split
+
+    @cached_property
+    def raytrace_representable(self) -> bool:
+        """Whether the ``raytrace`` model family holds the truth exactly: distortion
+        defined ray -> pixel without an ``r^8`` term, and a fixed entrance pupil."""
+        lens = self.truth_optics.lens
+        return (
+            lens.direction == "ray_to_pixel"
+            and lens.distortion.radial[3] == 0.0
+            and lens.pupil_shift_mm == 0.0
         )
-        for face in ("left", "right"):
-            a = np.radians(prism[f"{face}_face"]["a_deg"])
-            b = np.radians(prism[f"{face}_face"]["b_deg"])
-            values[f"{face}_a"], values[f"{face}_b"] = a, b
-            values[f"{face}_d"] = float(plane_normal(a, b) @ self.apex_point)
-        values["n_glass"] = float(prism["n_glass"])
+
+    def _truth_params(self) -> np.ndarray:
+        optics = self.truth_optics
+        lens = optics.lens
+        values = {"fx": lens.fx, "fy": lens.fy, "cx": lens.cx, "cy": lens.cy}
+        values.update(zip(("k1", "k2", "k3"), lens.distortion.radial[:3], strict=True))
+        values.update(p1=lens.distortion.p1, p2=lens.distortion.p2)
+        for name, plane in (("rear", optics.rear), ("left", optics.left), ("right", optics.right)):
+            nx, ny, nz = plane.normal
+            values[f"{name}_a"] = float(np.arctan(nx / nz))
+            values[f"{name}_b"] = float(np.arctan(ny / nz))
+            values[f"{name}_d"] = plane.d  # the same unit normal, so the same distance
+        values["n_glass"] = optics.n_glass
         return np.array([values[n] for n in RaytraceModel.PARAM_NAMES], dtype=np.float64)
 
     @cached_property
-    def split(self) -> int:
-        """First column of the right half: the column boundary nearest the apex image."""
-        from endomeasure.simulate.optics import apex_columns
-
-        width, height = self.image_size
-        provisional = RaytraceModel(self._truth_params(), ModelConfig((width, height), width // 2))
-        u = apex_columns(provisional, np.array([(height - 1) / 2.0]))[0]
-        return int(np.floor(u + 1.0))  # the boundary u = split - 0.5 nearest the apex
-
-    @cached_property
     def truth_model(self) -> RaytraceModel:
-        """The ground-truth optics (every parameter free in its configuration)."""
+        """The ``raytrace`` model nearest the truth: the truth itself when
+        :attr:`raytrace_representable`, else the same numbers without the extra effects
+        (an approximate seed for calibration, not the simulator's optics)."""
         return RaytraceModel(self._truth_params(), ModelConfig(self.image_size, self.split))
 
     @property

@@ -63,7 +63,7 @@ def apex_profile(preset: Preset, region: Region) -> np.ndarray:
     """
     height = preset.image_size[1]
     rows = np.linspace(0.0, height - 1.0, _APEX_ROWS)
-    cols = apex_columns(preset.truth_model, rows)
+    cols = apex_columns(preset.truth_optics, rows)
     ok = np.isfinite(cols)
     v = np.arange(region.v0, region.v1, dtype=np.float64)
     u_apex = np.interp(v, rows[ok], cols[ok])
@@ -292,7 +292,7 @@ def render(
     if not noise_free and rng is None:
         raise ValueError("a noisy render needs an rng (or noise_free=True)")
     region = region or Region.full(preset.image_size)
-    model = preset.truth_model
+    model = preset.truth_optics
     bundle = ray_bundle(model, region, preset.supersampling, preset.chunk_rays)
     H, W, S = bundle.valid.shape
     signal = np.zeros((H, W, S))

@@ -86,7 +86,7 @@ class _Clearance:
 
     def __init__(self, preset: Preset):
         self.preset = preset
-        self.model = preset.truth_model
+        self.model = preset.truth_optics
         height = preset.image_size[1]
         self.rows = np.linspace(0.0, height - 1.0, 9)
         self.apex = apex_columns(self.model, self.rows)

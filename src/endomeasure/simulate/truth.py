@@ -4,9 +4,10 @@ Every image ``NAME.png`` has a truth file ``NAME.json`` next to it (format
 ``endomeasure-simulated-truth``, version 1; fields documented in ``docs/simulator.md``):
 the target and its pose ``T_camera_<target>``, and for boards every inner corner's id,
 true 3D position in the camera frame and true pixel in each half, computed by exact ray
-aiming through the ground-truth optics (``null`` where the corner does not project into
-that half), plus the true values of the board-test measurements (SPEC section 7). For
-the metal scene: the marks' 3D positions, pixels, and the distances between them.
+aiming through the ground-truth optics of :mod:`.truth_optics` (``null`` where the corner
+does not project into that half), plus the true values of the board-test measurements
+(SPEC section 7). For the metal scene: the marks' 3D positions, pixels, and the
+distances between them.
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ def true_pixels(preset: Preset, points: np.ndarray) -> dict[str, list]:
     """
     out = {}
     for half in Half:
-        proj = preset.truth_model.project(points, half)
+        proj = preset.truth_optics.project(points, half)
         out[half.label] = [
             [float(q[0]), float(q[1])] if s == Status.OK else None
             for q, s in zip(proj.pixels, proj.status, strict=True)
