@@ -90,7 +90,7 @@ def evaluate(preset, renders, variants):
                     continue
                 pixels = result.pixels
                 if how[0] == "symmetry":  # as detect_charuco's: from the detector's corners
-                    symmetric, converged = refine_charuco_symmetric(
+                    symmetric, converged, _ = refine_charuco_symmetric(
                         gray, result.ids, base["opencv"].pixels, spec, window_fraction=how[1]
                     )
                     pixels = np.where(converged[:, None], symmetric, pixels)

@@ -576,9 +576,14 @@ def calibrate(
         _print_json(report.to_dict())
     else:
         _render_calibration(console, report)
-    if report.refused:
-        for name, why in report.refused.items():
-            sys.stderr.write(f"error: {name}: {_one_line(why)}\n")
+    for name, why in report.refused.items():
+        sys.stderr.write(f"error: {name}: {_one_line(why)}\n")
+    for name, why in report.failed.items():
+        level = "error" if not report.ok else "note"
+        sys.stderr.write(
+            f"{level}: {name}: calibration failed, stored as not usable: {_one_line(why)}\n"
+        )
+    if not report.ok:
         raise typer.Exit(1)
 
 
@@ -588,15 +593,21 @@ def _render_calibration(console: Console, report: Any) -> None:
     models = report.models
     if models:
         table = Table(title=f"calibration of {report.session}", title_justify="left")
-        for column in ("model", "RMS px", "left px", "right px", "sigma px", "corners",
-                       "outliers", "worst images (RMS px)"):  # fmt: skip
-            table.add_column(column, justify="left" if column in ("model",) else "right")
+        for column in ("model", "verdict", "RMS px", "left px", "right px", "noise floor px",
+                       "RMS/floor", "corners", "outliers", "worst images (RMS px)"):  # fmt: skip
+            table.add_column(column, justify="left" if column in ("model", "verdict") else "right")
         for s in models.values():
             worst = ", ".join(f"{n} {r:.3f}" for n, r in s.worst_images)
-            figures = (s.rms, s.rms_half[0], s.rms_half[1], s.residual_sigma)
-            table.add_row(s.name, *(f"{v:.4f}" for v in figures), str(s.n_corners),
-                          str(s.n_outliers), worst)  # fmt: skip
+            figures = (s.rms, s.rms_half[0], s.rms_half[1], s.noise_floor)
+            table.add_row(s.name, s.verdict, *(f"{v:.4f}" for v in figures),
+                          f"{s.rms_ratio:.2f}", str(s.n_corners), str(s.n_outliers),
+                          worst)  # fmt: skip
         console.print(table)
+        for s in models.values():
+            for reason in s.reasons:
+                console.print(f"{s.name} {s.verdict}: {reason}", markup=False)
+            for line in s.selection:
+                console.print(f"{s.name} lens/model terms: {line}", markup=False)
     for s in models.values():
         table = Table(title=f"{s.name} parameters (+- 1 sigma)", title_justify="left")
         table.add_column("parameter")

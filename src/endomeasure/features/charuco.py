@@ -73,13 +73,17 @@ class CharucoResult:
     n_markers : int
         Markers decoded.
     failure : str or None
+    covariance : ndarray, shape (n, 2, 2), px^2, or None
+        Formal covariance of the symmetric refinement (NaN where it did not converge).
     """
 
-    def __init__(self, ids: np.ndarray, pixels: np.ndarray, n_markers: int, failure: str | None):
+    def __init__(self, ids: np.ndarray, pixels: np.ndarray, n_markers: int, failure: str | None,
+                 covariance: np.ndarray | None = None):  # fmt: skip
         self.ids = ids
         self.pixels = pixels
         self.n_markers = n_markers
         self.failure = failure
+        self.covariance = covariance
 
     @property
     def ok(self) -> bool:
@@ -176,7 +180,8 @@ def refine_charuco_symmetric(
     spec: CharucoSpec,
     *,
     window_fraction: float = SYMMETRY_WINDOW_FRACTION,
-) -> tuple[np.ndarray, np.ndarray]:
+    precision: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Refine ChArUco corners to the centre of point symmetry, the window off the bits.
 
     Parameters
@@ -189,26 +194,37 @@ def refine_charuco_symmetric(
     window_fraction : float
         The Gaussian window is cut (at two sigmas) at this fraction of
         :func:`symmetric_radius_squares`.
+    precision : bool
+        Whether to compute each refined corner's formal covariance.
 
     Returns
     -------
     pixels : ndarray, shape (n, 2), px
         The start where the fit did not converge or the neighbours gave no local map.
     refined : ndarray, shape (n,), bool
+    covariance : ndarray, shape (n, 2, 2), px^2, or None
+        The fit's formal covariance from the image noise
+        (:func:`endomeasure.features.precision.symmetric_precision`), NaN where not
+        refined; None unless ``precision``.
     """
+    from endomeasure.features.precision import symmetric_precision
     from endomeasure.features.subpixel import SYMMETRY_TRUNCATE, symmetric_corners
 
     steps = charuco_local_steps(ids, pixels, spec.cols)
     usable = np.isfinite(steps).all(axis=(1, 2))
     out = np.array(pixels, dtype=np.float64)
     refined = np.zeros(len(out), dtype=bool)
+    covariance = np.full((len(out), 2, 2), np.nan) if precision else None
     if not usable.any():
-        return out, refined
+        return out, refined, covariance
     sigma = window_fraction * symmetric_radius_squares(spec) / SYMMETRY_TRUNCATE
     result = symmetric_corners(gray, None, out[usable], sigma_squares=sigma, steps=steps[usable])
     out[usable] = result.pixels
     refined[usable] = result.converged
-    return out, refined
+    if precision and refined.any():
+        formal = symmetric_precision(gray, out[refined], steps[refined], sigma_squares=sigma)
+        covariance[refined] = formal.covariance
+    return out, refined, covariance
 
 
 def detect_charuco(
@@ -270,6 +286,9 @@ def detect_charuco(
     if refinement == "symmetry":
         # from the detector's corners: cornerSubPix's small window occasionally walks
         # off a corner by more than the symmetric fit's reach
-        symmetric, converged = refine_charuco_symmetric(gray, ids, pixels, spec)
+        symmetric, converged, covariance = refine_charuco_symmetric(
+            gray, ids, pixels, spec, precision=True
+        )
         refined = np.where(converged[:, None], symmetric, refined)
+        return CharucoResult(ids, refined, n_markers, None, covariance)
     return CharucoResult(ids, refined, n_markers, None)

@@ -63,6 +63,7 @@ __all__ = [
     "detect_chessboard",
     "refine_corners",
     "refine_symmetric",
+    "refine_symmetric_precise",
     "saddle_scores",
     "trim_false_lines",
 ]
@@ -110,10 +111,15 @@ class ChessboardResult:
         Corner ``id`` in row ``id``; coordinates of the image the detector was given.
     failure : str or None
         Why nothing was found (then ``pixels`` is empty).
+    covariance : ndarray, shape (rows * cols, 2, 2), px^2, or None
+        Formal covariance of each corner from the image noise
+        (:mod:`endomeasure.features.precision`), for the symmetric refinement only; NaN
+        where that fit did not converge.
     """
 
     pixels: np.ndarray
     failure: str | None = None
+    covariance: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -212,22 +218,39 @@ def refine_corners(gray: np.ndarray, pixels: np.ndarray, halfwindow: int) -> np.
 def refine_symmetric(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
     """Refine a corner grid: ``cornerSubPix`` first, then the centre of point symmetry.
 
-    The symmetric comparison follows the curvature of the grid lines, estimated per
-    corner from a quadratic fit to its 5 x 5 started neighbours
-    (:func:`endomeasure.features.subpixel.local_quadratic`).
+    The pixels of :func:`refine_symmetric_precise`, without their covariance.
+    """
+    return refine_symmetric_precise(gray, grid, precision=False)[0]
+
+
+def refine_symmetric_precise(
+    gray: np.ndarray, grid: np.ndarray, *, precision: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Refine a corner grid to the centres of point symmetry, with each corner's covariance.
+
+    ``cornerSubPix`` gives the start; the symmetric comparison follows the curvature of
+    the grid lines, estimated per corner from a quadratic fit to its 5 x 5 started
+    neighbours (:func:`endomeasure.features.subpixel.local_quadratic`).
 
     Parameters
     ----------
     gray : ndarray, shape (height, width), uint8
     grid : ndarray, shape (rows, cols, 2), px
         Detected corners in canonical order.
+    precision : bool
+        Whether to compute the covariance.
 
     Returns
     -------
-    ndarray, shape (rows * cols, 2), px
+    pixels : ndarray, shape (rows * cols, 2), px
         Where the symmetric fit does not converge (a corner whose window would leave the
         image, a singular fit), the ``cornerSubPix`` pixel.
+    covariance : ndarray, shape (rows * cols, 2, 2), px^2, or None
+        The fit's formal covariance from the image noise it sees (estimated per corner
+        from the fit's residuals, :func:`endomeasure.features.precision.symmetric_precision`);
+        NaN where the fit did not converge.
     """
+    from endomeasure.features.precision import symmetric_precision
     from endomeasure.features.subpixel import local_quadratic, symmetric_corners
 
     started = refine_corners(gray, grid.reshape(-1, 2), adaptive_subpix_halfwindow(grid))
@@ -236,7 +259,14 @@ def refine_symmetric(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
     # u-bias of the two halves).
     steps, curvature = local_quadratic(started.reshape(grid.shape))
     result = symmetric_corners(gray, None, started, steps=steps, curvature=curvature)
-    return result.pixels
+    if not precision:
+        return result.pixels, None
+    covariance = np.full((len(started), 2, 2), np.nan)
+    ok = result.converged
+    if ok.any():
+        formal = symmetric_precision(gray, result.pixels[ok], steps[ok], curvature[ok])
+        covariance[ok] = formal.covariance
+    return result.pixels, covariance
 
 
 class _LargerBoard(Exception):
@@ -400,7 +430,8 @@ def detect_chessboard(
         )
     pixels = grid.reshape(-1, 2)
     if method.endswith("symmetry"):
-        return ChessboardResult(refine_symmetric(gray, grid))
+        pixels, covariance = refine_symmetric_precise(gray, grid)
+        return ChessboardResult(pixels, covariance=covariance)
     if method == "sb-saddle":
         from endomeasure.features.subpixel import saddle_corners
 

@@ -52,6 +52,10 @@ class HalfDetection:
     quality : HalfQuality
     failure : str or None
         Why the half has no corners; None when it has.
+    covariance : ndarray, shape (n, 2, 2), px^2, or None
+        Each corner's formal covariance from the image noise (the symmetric refinement's,
+        :mod:`endomeasure.features.precision`; NaN where it did not converge); None for
+        refinements without one.
     """
 
     half: Half
@@ -59,6 +63,7 @@ class HalfDetection:
     pixels: np.ndarray
     quality: HalfQuality
     failure: str | None = None
+    covariance: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -200,7 +205,7 @@ def _detect_half(
     width_px = edge_width_px(gray.astype(np.float64), ids, pixels, spec.cols, reach)
     quality = dataclasses.replace(quality, edge_width_px=width_px)
     full = pixels + np.array([offset, 0.0])
-    return HalfDetection(half, ids, full, quality, None)
+    return HalfDetection(half, ids, full, quality, None, result.covariance)
 
 
 def detect_split_image(

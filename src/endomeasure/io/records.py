@@ -34,6 +34,8 @@ __all__ = [
     "board_test_record",
     "calibration_extras",
     "calibration_record",
+    "check_usable",
+    "stored_verdict",
     "load_calibrated_model",
     "measurement_prediction_record",
     "measurement_record",
@@ -75,6 +77,8 @@ def calibration_record(result, name: str | None = None) -> ModelRecord:
         "rms_image_half": result.rms_image_half,
         "rms_half": result.rms_half,
     }
+    if result.obs_covariance is not None:
+        arrays["obs_covariance"] = result.obs_covariance
     attrs = {
         "kind": "calibration",
         "rms": result.rms,
@@ -87,8 +91,20 @@ def calibration_record(result, name: str | None = None) -> ModelRecord:
         "outlier_threshold_px": result.outlier_threshold_px,
         "start": result.start,
         "skipped_images": list(result.skipped_images),
+        "extensions": list(result.extensions),
+        "selection": list(result.selection),
     }
+    verdict = result.verdict
+    if verdict is not None:
+        attrs.update(
+            verdict=verdict.level,
+            verdict_reasons=list(verdict.reasons),
+            noise_floor_px=verdict.floor_px,
+            rms_ratio=verdict.rms_ratio,
+        )
     units = {
+        "noise_floor_px": "px",
+        "obs_covariance": "px^2",
         "rms": "px",
         "residual_variance": "px^2",
         "outlier_threshold_px": "px",
@@ -172,6 +188,9 @@ class CalibratedModel:
     depth_range_mm : (float, float) or None
         Nearest and farthest depth of the calibration's inlier corners in the model
         frame, mm: where the calibration has seen the board.
+    verdict : str
+        The calibration's verdict (``ok``, ``warning``, ``failed``; ``unjudged`` for
+        models stored without one, e.g. by an earlier version).
     """
 
     name: str
@@ -179,12 +198,36 @@ class CalibratedModel:
     param_cov: np.ndarray | None
     sigma_px: float | None
     depth_range_mm: tuple[float, float] | None = None
+    verdict: str = "unjudged"
 
 
-def load_calibrated_model(reader, name: str, session: str | Path) -> CalibratedModel:
+def stored_verdict(record: ModelRecord) -> tuple[str, list[str]]:
+    """The verdict of a stored model and its reasons (``unjudged`` without one)."""
+    reasons = record.attrs.get("verdict_reasons", [])
+    reasons = [str(r) for r in (reasons if isinstance(reasons, (list, tuple)) else [reasons])]
+    return str(record.attrs.get("verdict", "unjudged")), reasons
+
+
+def check_usable(record: ModelRecord, session: str | Path) -> None:
+    """Refuse a model whose calibration failed its verdict (BadInputError)."""
+    level, reasons = stored_verdict(record)
+    if level == "failed":
+        why = reasons[0] if reasons else "see `endomeasure info`"
+        raise BadInputError(
+            f"the {record.name!r} calibration failed ({why}): it is not usable for measurements",
+            path=str(session),
+            hint="recalibrate with more or better images, or use another model",
+        )
+
+
+def load_calibrated_model(
+    reader, name: str, session: str | Path, *, allow_failed: bool = False
+) -> CalibratedModel:
     """The model ``name`` of an open session, with its covariance and residual sigma.
 
-    A model the session does not hold is a :class:`BadInputError` naming those it holds.
+    A model the session does not hold, or whose calibration failed (unless
+    ``allow_failed``, for diagnostics such as the board test), is a
+    :class:`BadInputError` naming what to do.
     """
     names = reader.model_names()
     if name not in names:
@@ -195,6 +238,8 @@ def load_calibrated_model(reader, name: str, session: str | Path) -> CalibratedM
             hint=f"run `endomeasure calibrate {session} --model {name}` first",
         )
     record = reader.model(name)
+    if not allow_failed:
+        check_usable(record, session)
     model = model_from_record(record)
     cov = None
     stored = _stored_covariance(record)
@@ -215,7 +260,9 @@ def load_calibrated_model(reader, name: str, session: str | Path) -> CalibratedM
         if variance is not None and np.isfinite(variance) and variance > 0
         else None
     )
-    return CalibratedModel(name, model, cov, sigma, _calibration_depths(record))
+    return CalibratedModel(
+        name, model, cov, sigma, _calibration_depths(record), stored_verdict(record)[0]
+    )
 
 
 def _calibration_depths(record: ModelRecord) -> tuple[float, float] | None:

@@ -215,6 +215,9 @@ class Detection:
         Why the half failed; empty when the detection succeeded.
     attrs : dict
         Further detector output.
+    covariance : ndarray, shape (N, 2, 2), float64, px^2, or None
+        Each corner's formal covariance from the image noise (NaN where unknown); None
+        when the detector gave none.
     """
 
     image: str
@@ -225,6 +228,7 @@ class Detection:
     quality: float = math.nan
     failure: str = ""
     attrs: dict[str, Any] = field(default_factory=dict)
+    covariance: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -727,16 +731,29 @@ class Session:
                     if not self._check_node(node, "detection"):
                         continue
                     attrs, _ = _read_attrs(node)
+                    pixels = np.asarray(node["pixels"][()], dtype=np.float64).reshape(-1, 2)
+                    covariance = None
+                    if "covariance" in node:
+                        covariance = np.asarray(node["covariance"][()], dtype=np.float64)
+                        if covariance.shape != (len(pixels), 2, 2):
+                            raise _damaged(
+                                str(self.path),
+                                ValueError(
+                                    f"detection {image_name}/{board_name}/{half_value.label}: "
+                                    f"covariance shape {covariance.shape} for {len(pixels)} corners"
+                                ),
+                            )
                     out.append(
                         Detection(
                             image=image_name,
                             board=board_name,
                             half=half_value,
                             ids=np.asarray(node["ids"][()], dtype=np.int32),
-                            pixels=np.asarray(node["pixels"][()], dtype=np.float64).reshape(-1, 2),
+                            pixels=pixels,
                             quality=float(attrs.pop("quality", math.nan)),
                             failure=str(attrs.pop("failure", "")),
                             attrs=attrs,
+                            covariance=covariance,
                         )
                     )
         return out
@@ -954,6 +971,14 @@ class SessionWriter(Session):
             node = self._fresh_group(image_node, half.label, "detection")
             node.create_dataset("ids", data=ids.astype(np.int32))
             node.create_dataset("pixels", data=pixels).attrs["units"] = "px"
+            if det.covariance is not None:
+                covariance = np.asarray(det.covariance, dtype=np.float64)
+                if covariance.shape != (ids.shape[0], 2, 2):
+                    raise BadInputError(
+                        f"detection {det.image}/{det.board}/{half.label}: covariance shape "
+                        f"{covariance.shape} does not match (N, 2, 2)"
+                    )
+                node.create_dataset("covariance", data=covariance).attrs["units"] = "px^2"
             extra = dict(det.attrs)
             _write_attrs(
                 node, {"quality": float(det.quality), "failure": str(det.failure), **extra}, {}

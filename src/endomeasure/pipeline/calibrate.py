@@ -6,7 +6,10 @@ with ``all``, every registered model, each seed model before the models seeded f
 which start from its result); store every
 model that succeeded in one atomic session edit; draw residual plots if asked; report.
 A model whose calibration is refused is not stored, and the report carries the refusal
-(the command then exits 1).
+(the command then exits 1). Every stored calibration carries its verdict
+(:mod:`endomeasure.solvers.verdict`); one that failed is stored for diagnosis (the board
+test shows its errors) but refused by every command that measures with it, and makes
+the command exit 1 unless ``all`` was asked for and another model passed.
 
 What is stored per model (group ``models/<name>``) is defined in
 :func:`endomeasure.io.records.calibration_record` and ``docs/session-format.md``: the
@@ -58,6 +61,12 @@ class ModelSummary:
     status: int
     nfev: int
     start: str
+    verdict: str = "unjudged"
+    reasons: list[str] = dataclasses.field(default_factory=list)
+    noise_floor: float = float("nan")
+    rms_ratio: float = float("nan")
+    extensions: list[str] = dataclasses.field(default_factory=list)
+    selection: list[str] = dataclasses.field(default_factory=list)
     plots: list[str] = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
@@ -68,6 +77,7 @@ class ModelSummary:
         d["worst_images"] = [{"image": n, "rms_px": r} for n, r in self.worst_images]
         d["correlations"] = [{"a": a, "b": b, "r": r} for a, b, r in self.correlations]
         d["residual_sigma_px"] = d.pop("residual_sigma")
+        d["noise_floor_px"] = d.pop("noise_floor")
         return d
 
 
@@ -79,10 +89,22 @@ class CalibrateReport:
     n_images: int
     models: dict[str, ModelSummary]
     refused: dict[str, str]
+    all_models: bool = False
+
+    @property
+    def failed(self) -> dict[str, str]:
+        """Models stored with the verdict ``failed``, with the first reason."""
+        return {n: (m.reasons or ["failed"])[0] for n, m in self.models.items()
+                if m.verdict == "failed"}  # fmt: skip
 
     @property
     def ok(self) -> bool:
-        return not self.refused
+        """Whether the command succeeded: nothing refused, and no failed calibration except,
+        with ``all``, models that another usable model makes up for."""
+        if self.refused:
+            return False
+        usable = [m for m in self.models.values() if m.verdict != "failed"]
+        return bool(usable) and (self.all_models or not self.failed)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -92,6 +114,8 @@ class CalibrateReport:
             "n_images": self.n_images,
             "models": {k: v.to_dict() for k, v in self.models.items()},
             "refused": dict(self.refused),
+            "failed": self.failed,
+            "ok": self.ok,
         }
 
 
@@ -133,17 +157,19 @@ def load_calibration_inputs(session: str | Path):
         boards_per_image[image] = boards_per_image.get(image, 0) + 1
     views = []
     for (image, board), halves in sorted(by_view.items()):
-        ids, pixels = [], []
+        ids, pixels, covariance = [], [], []
         for h in Half:
             det = halves.get(h)
             if det is None or not det.ok:
                 ids.append(np.zeros(0, dtype=np.int64))
                 pixels.append(np.zeros((0, 2)))
+                covariance.append(None)
             else:
                 ids.append(np.asarray(det.ids, dtype=np.int64))
                 pixels.append(np.asarray(det.pixels, dtype=np.float64))
+                covariance.append(det.covariance)
         name = image if boards_per_image[image] == 1 else f"{image}@{board}"
-        views.append(ViewDetections(name, board, tuple(ids), tuple(pixels)))
+        views.append(ViewDetections(name, board, tuple(ids), tuple(pixels), tuple(covariance)))
     if not views:
         raise CalibrationError(
             "the session holds no detections of calibration images",
@@ -172,6 +198,12 @@ def _summary(result, plots: list[str]) -> ModelSummary:
         status=result.status,
         nfev=result.nfev,
         start=result.start,
+        verdict=result.verdict.level,
+        reasons=list(result.verdict.reasons),
+        noise_floor=result.verdict.floor_px,
+        rms_ratio=result.verdict.rms_ratio,
+        extensions=list(result.extensions),
+        selection=list(result.selection),
         plots=plots,
     )
 
@@ -255,7 +287,7 @@ def calibrate_session(
         plots = plot_residuals(res, Path(plot_dir)) if plot_dir is not None else []
         summaries[name] = _summary(res, plots)
     return CalibrateReport(str(session), tuple(image_size), int(split), len(views),
-                           summaries, refused)  # fmt: skip
+                           summaries, refused, model == ALL_MODELS)  # fmt: skip
 
 
 def _options_per_model(names, values: dict, free: frozenset, seed) -> dict:
@@ -290,9 +322,10 @@ def _options_per_model(names, values: dict, free: frozenset, seed) -> dict:
 def export_session_model(session: str | Path, name: str, fmt: str, out: str | Path) -> Path:
     """``endomeasure export``: write a stored model (and its calibration figures) to a file."""
     from endomeasure.io.export import export_model
-    from endomeasure.io.records import calibration_extras, model_from_record
+    from endomeasure.io.records import calibration_extras, check_usable, model_from_record
     from endomeasure.io.session import open_session
 
     with open_session(session) as s:
         record = s.model(name)
+    check_usable(record, session)
     return export_model(model_from_record(record), fmt, out, calibration_extras(record))

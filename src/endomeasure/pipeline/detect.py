@@ -405,6 +405,7 @@ def _stored_detections(found: _Detected, board_name: str, method: str | None) ->
                     pixels=half.pixels,
                     quality=half.quality.edge_width_px,
                     failure=half.failure or "",
+                    covariance=half.covariance,
                     attrs={
                         "quality_kind": QUALITY_KIND,
                         "brightness": half.quality.brightness,

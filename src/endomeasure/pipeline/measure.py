@@ -513,7 +513,10 @@ def board_test(
     zone_mm = checked_zone_mm(zone_mm)
     with open_session(session) as reader:
         names = _models_to_run(reader, model, session)
-        models = {n: load_calibrated_model(reader, n, session).model for n in names}
+        # the board test is the diagnostic that shows a failed calibration's errors
+        models = {
+            n: load_calibrated_model(reader, n, session, allow_failed=True).model for n in names
+        }
         boards = {name: b.attrs for name, b in reader.boards().items()}
         sets = board_sets(boards, reader.detections(), reader.image_names("test"), str(session))
     results = {}

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -37,6 +37,7 @@ from endomeasure.solvers.bundle import (
     refine,
 )
 from endomeasure.solvers.covariance import marginal_covariance
+from endomeasure.solvers.verdict import Verdict, judge
 
 __all__ = [
     "ViewDetections",
@@ -90,12 +91,16 @@ class ViewDetections:
         each of shape (n_h,), int.
     pixels : (ndarray, ndarray)
         Their full-image pixel coordinates, each of shape (n_h, 2), px.
+    covariance : (ndarray or None, ndarray or None)
+        The detector's formal covariance of each corner, shape (n_h, 2, 2), px^2 (NaN
+        where unknown; None: none at all): the noise the verdict compares the fit with.
     """
 
     name: str
     board: str
     ids: tuple[np.ndarray, np.ndarray]
     pixels: tuple[np.ndarray, np.ndarray]
+    covariance: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -186,6 +191,15 @@ class CalibrationResult:
         Images not used (too few corners in both halves).
     start : str
         Where the optimisation started from.
+    obs_covariance : ndarray, shape (M, 2, 2), px^2
+        The detector's formal covariance of every observation (NaN where unknown).
+    verdict : Verdict or None
+        ok / warning / failed with the reasons (:mod:`endomeasure.solvers.verdict`).
+    extensions : tuple of str
+        Parameters the model holds fixed by default that the data called for
+        (``EXTENSIONS``), freed in this fit.
+    selection : tuple of str
+        What the extension selection found, one sentence per group tried.
     """
 
     model: CameraModel
@@ -210,6 +224,10 @@ class CalibrationResult:
     rounds: int
     skipped_images: tuple[str, ...] = ()
     start: str = ""
+    obs_covariance: np.ndarray | None = None
+    verdict: Verdict | None = None
+    extensions: tuple[str, ...] = ()
+    selection: tuple[str, ...] = ()
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -317,9 +335,12 @@ def _collect(
     boards: Mapping[str, np.ndarray],
     image_size: tuple[int, int],
     split: int,
-) -> Observations:
-    """Validate detections and flatten them; images with no usable half are skipped."""
-    names, bnames, img, hal, ids_all, X, q = [], [], [], [], [], [], []
+) -> tuple[Observations, np.ndarray]:
+    """Validate detections and flatten them; images with no usable half are skipped.
+
+    Returns the observations and the detector's covariance of each, (M, 2, 2) px^2.
+    """
+    names, bnames, img, hal, ids_all, X, q, C = [], [], [], [], [], [], [], []
     skipped = []
     seen = set()
     for view in detections:
@@ -357,7 +378,8 @@ def _collect(
                     f"(split {split}, image {image_size[0]}x{image_size[1]})",
                     hint="check the split column and the image size",
                 )
-            halves.append((ids, pix) if ids.size >= MIN_CORNERS_PER_HALF else None)
+            cov = _view_covariance(view, h, ids.size)
+            halves.append((ids, pix, cov) if ids.size >= MIN_CORNERS_PER_HALF else None)
         if all(hv is None for hv in halves):
             skipped.append(view.name)
             continue
@@ -367,7 +389,8 @@ def _collect(
         for h, hv in zip(Half, halves, strict=True):
             if hv is None:
                 continue
-            ids, pix = hv
+            ids, pix, cov = hv
+            C.append(cov)
             img.append(np.full(ids.size, k))
             hal.append(np.full(ids.size, int(h), dtype=np.int8))
             ids_all.append(ids)
@@ -377,7 +400,7 @@ def _collect(
     def cat(a, shape, dt):
         return np.concatenate(a).astype(dt) if a else np.zeros(shape, dt)
 
-    return Observations(
+    obs = Observations(
         tuple(names),
         tuple(bnames),
         cat(img, (0,), np.int64),
@@ -387,6 +410,21 @@ def _collect(
         cat(q, (0, 2), np.float64),
         tuple(skipped),
     )
+    return obs, cat(C, (0, 2, 2), np.float64)
+
+
+def _view_covariance(view: ViewDetections, half: Half, n: int) -> np.ndarray:
+    """The detector's covariance of a view's corners in one half, NaN where not given."""
+    given = view.covariance[half]
+    if given is None:
+        return np.full((n, 2, 2), np.nan)
+    cov = np.asarray(given, dtype=np.float64)
+    if cov.shape != (n, 2, 2):
+        raise BadInputError(
+            f"image {view.name!r}, {half.label} half: corner covariance of shape {cov.shape} "
+            f"for {n} corners"
+        )
+    return cov
 
 
 def _check_amount(obs: Observations) -> None:
@@ -526,7 +564,7 @@ def calibrate(
     options = options or CalibrationOptions()
     cls = model_class(model_name)  # KeyError for unknown names is the caller's concern
     config = ModelConfig(tuple(image_size), int(split), _fixed_parameters(cls, options))
-    obs = _collect(detections, boards, config.image_size, config.split)
+    obs, obs_cov = _collect(detections, boards, config.image_size, config.split)
     _check_amount(obs)
     _check_parallel(obs, config.image_size, config.split)
     starts = [start] if isinstance(start, CalibrationResult) else list(start or ())
@@ -540,17 +578,84 @@ def calibrate(
                       "an earlier calibration")  # fmt: skip
     else:
         first = chain.start_of(cls, config, _seed_model(cls, options.seed, config))
-    fitted = fit_with_outliers(
-        first.model,
+    fitted = _fit(first.model, obs, first.rvecs, first.tvecs, options, first.state)
+    nfev = chain.nfev + fitted.nfev
+    extensions, selection = (), ()
+    if options.fixed is None:
+        selected = _select_extensions(fitted, obs, options)
+        nfev += selected.nfev
+        fitted, extensions, selection = selected.fitted, selected.freed, selected.findings
+    result = _finish(fitted, obs, nfev, first.origin, obs_cov)
+    return dataclasses.replace(result, extensions=extensions, selection=selection)
+
+
+def _fit(model, obs: Observations, rvecs, tvecs, options: CalibrationOptions, state=None):
+    return fit_with_outliers(
+        model,
         obs,
-        first.rvecs,
-        first.tvecs,
+        rvecs,
+        tvecs,
         max_nfev=options.max_nfev,
         outlier_sigmas=options.outlier_sigmas,
         max_rounds=options.max_outlier_rounds,
-        state=first.state,
+        state=state,
     )
-    return _finish(fitted, obs, chain.nfev + fitted.nfev, first.origin)
+
+
+class _Selection(NamedTuple):
+    fitted: Any  # OutlierFit
+    freed: tuple[str, ...]
+    findings: tuple[str, ...]
+    nfev: int
+
+
+def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -> _Selection:
+    """Free the model's ``EXTENSIONS`` that the data call for, by the information criterion.
+
+    Each group (in the model's order) is freed from the current fit and refined on the
+    same inlier corners; it is kept when the Bayesian information criterion
+    ``m ln(SSR) + k ln(m)`` (``m`` residual components, ``k`` the group's size, the
+    noise variance estimated from the residuals) falls, i.e. when
+    ``m ln(SSR_0 / SSR_1) > k ln(m)``: a parameter that only fits noise lowers the SSR
+    by about one noise variance, far less than ``ln(m)`` of them. Parameters the user
+    gave a value for are not freed. After a change the outlier rule runs again.
+    """
+    model = fitted.fit.model
+    use = fitted.inliers
+    m = 2 * int(use.sum())
+    current, nfev, freed, findings = fitted.fit, 0, [], []
+    ssr = _ssr(current, obs, use)
+    for group in model.EXTENSIONS:
+        if any(name not in current.model.config.fixed or name in options.values for name in group):
+            continue
+        trial_model = current.model.with_config(fixed=current.model.config.fixed - set(group))
+        try:
+            trial = refine(trial_model, obs, current.rvecs, current.tvecs, use, options.max_nfev,
+                           current.state)  # fmt: skip
+        except CalibrationError:
+            continue
+        nfev += trial.nfev
+        trial_ssr = _ssr(trial, obs, use)
+        usable = trial.status > 0 and trial_ssr > 0 and np.isfinite(ssr) and ssr > 0
+        gain = m * np.log(ssr / trial_ssr) if usable else -np.inf
+        kept = gain > len(group) * np.log(m)
+        findings.append(
+            f"{'freed' if kept else 'kept fixed'} {', '.join(group)}: the information "
+            f"criterion changes by {-gain + len(group) * np.log(m):+.1f} "
+            f"(RMS {np.sqrt(2 * ssr / m):.4f} -> {np.sqrt(2 * trial_ssr / m):.4f} px)"
+        )
+        if kept:
+            current, ssr = trial, trial_ssr
+            freed.extend(group)
+    if not freed:
+        return _Selection(fitted, (), tuple(findings), nfev)
+    again = _fit(current.model, obs, current.rvecs, current.tvecs, options, current.state)
+    return _Selection(again, tuple(freed), tuple(findings), nfev + again.nfev)
+
+
+def _ssr(fit, obs: Observations, use: np.ndarray) -> float:
+    r = all_residuals(fit.model, obs, fit.rvecs, fit.tvecs, fit.state)[use]
+    return float(np.sum(r * r)) if np.all(np.isfinite(r)) else np.inf
 
 
 def _same_images(result: CalibrationResult, obs: Observations, config: ModelConfig) -> bool:
@@ -663,7 +768,9 @@ def _check_fit(fit, inl: np.ndarray, what: str = "the") -> None:
         )
 
 
-def _finish(fitted, obs: Observations, nfev: int, origin: str) -> CalibrationResult:
+def _finish(
+    fitted, obs: Observations, nfev: int, origin: str, obs_cov: np.ndarray
+) -> CalibrationResult:
     fit, residuals, use = fitted.fit, fitted.residuals, fitted.inliers
     model = fit.model
     name = model.NAME
@@ -687,7 +794,7 @@ def _finish(fitted, obs: Observations, nfev: int, origin: str) -> CalibrationRes
             f"the {name} calibration is singular: parameters not determined by the data: {names}",
             hint="fix them or add images with more tilt and distance",
         )
-    return CalibrationResult(
+    result = CalibrationResult(
         model=model,
         free_names=free_names,
         covariance=mc.covariance,
@@ -710,4 +817,6 @@ def _finish(fitted, obs: Observations, nfev: int, origin: str) -> CalibrationRes
         rounds=fitted.rounds,
         skipped_images=obs.skipped,
         start=origin,
+        obs_covariance=obs_cov,
     )
+    return dataclasses.replace(result, verdict=judge(result, obs_cov, problem.n))

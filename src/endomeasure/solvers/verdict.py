@@ -1,0 +1,250 @@
+"""The verdict on a calibration: ok, warning or failed, with its reasons (SPEC 5).
+
+A fit is judged against what the detections allow, not against a fixed pixel figure:
+
+- **RMS against the noise floor.** Each detected corner carries the detector's formal
+  covariance ``C_i`` (:mod:`endomeasure.features.precision`). A model that describes the
+  optics leaves residuals of that size: ``E[SSR] = (m - n) / m * sum_i tr C_i`` for ``m``
+  residual components and ``n`` unknowns, so the floor is
+  ``sqrt((m - n) / m * mean_i tr C_i)`` as an RMS residual length. The ratio RMS / floor is
+  1 within ``1 / sqrt(2 m)`` (a percent for a few thousand corners) when the model is
+  adequate and the detector unbiased; other errors add in quadrature, so a ratio of
+  ``r`` means errors of ``sqrt(r^2 - 1)`` times the noise on top of it. The formal floor
+  sees pixel noise only: the detector's own deterministic error on blurred, distorted
+  corners comes on top even for a perfect model (its size on renders, against their
+  exact truth: ``docs/accuracy.md``), so up to :data:`OK_RMS_RATIO` is ok; up to
+  :data:`FAILED_RMS_RATIO` a warning; above it the calibration failed: its errors are
+  dominated by what the model cannot describe, whatever the detector's share.
+- **Outliers.** More than :data:`OUTLIER_WARNING_FRACTION` of the corners dropped is a
+  sign of trouble (mrcal's rule of thumb); where they are is reported.
+- **Residual structure.** The inlier residuals are averaged over a grid of cells per half;
+  a cell whose mean residual is both significant (:data:`STRUCTURE_Z` standard errors)
+  and large against the noise (:data:`STRUCTURE_NOISE_FRACTION` of the per-axis floor)
+  shows a systematic misfit in that part of the field.
+- **Undetermined combinations.** A correlation matrix of the free parameters with an
+  eigenvalue below :data:`MIN_CORRELATION_EIGENVALUE` has a combination the data hardly
+  see (its standard deviation inflated a thousand-fold against independent parameters).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import numpy as np
+
+__all__ = [
+    "Verdict",
+    "judge",
+    "noise_floor",
+    "VERDICT_LEVELS",
+    "OK_RMS_RATIO",
+    "FAILED_RMS_RATIO",
+    "OUTLIER_WARNING_FRACTION",
+]
+
+VERDICT_LEVELS = ("ok", "warning", "failed")
+OK_RMS_RATIO = 1.5
+"""RMS / floor up to this is ok: other errors at most 1.1 times the pixel noise."""
+FAILED_RMS_RATIO = 2.0
+"""RMS / floor above this fails: other errors more than 1.7 times the pixel noise."""
+OUTLIER_WARNING_FRACTION = 0.03
+STRUCTURE_CELLS = 4
+"""Cells per axis of each half for the residual-structure check."""
+STRUCTURE_MIN_CORNERS = 20
+STRUCTURE_Z = 5.0
+STRUCTURE_NOISE_FRACTION = 0.5
+MIN_CORRELATION_EIGENVALUE = 1e-6
+MIN_KNOWN_FRACTION = 0.5
+"""At least this fraction of the inlier corners must carry a formal covariance for the
+floor to be computed (the others get the median of the known ones)."""
+EDGE_RADIUS_FRACTION = 0.7
+"""Outliers beyond this fraction of the half's centre-to-corner radius are 'at the edge'."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Verdict:
+    """The judgement of one calibration.
+
+    Attributes
+    ----------
+    level : str
+        ``ok``, ``warning`` or ``failed``.
+    reasons : tuple of str
+        One sentence per finding (empty when ok).
+    floor_px : float
+        Expected RMS residual length from the detection noise alone, px (NaN unknown).
+    rms_ratio : float
+        The fit's RMS over the floor (NaN when the floor is unknown).
+    outlier_fraction : float
+    """
+
+    level: str
+    reasons: tuple[str, ...]
+    floor_px: float
+    rms_ratio: float
+    outlier_fraction: float
+
+    @property
+    def usable(self) -> bool:
+        return self.level != "failed"
+
+    def to_dict(self) -> dict:
+        return {
+            "level": self.level,
+            "reasons": list(self.reasons),
+            "floor_px": self.floor_px,
+            "rms_ratio": self.rms_ratio,
+            "outlier_fraction": self.outlier_fraction,
+        }
+
+
+def noise_floor(covariance: np.ndarray, m: int, n: int) -> float:
+    """Expected RMS residual length of a correct model, px (NaN without enough covariances).
+
+    Parameters
+    ----------
+    covariance : ndarray, shape (K, 2, 2), px^2
+        Formal covariance of each fitted corner; NaN where unknown.
+    m, n : int
+        Residual components and unknowns of the fit.
+    """
+    trace = np.trace(np.asarray(covariance, dtype=np.float64), axis1=1, axis2=2)
+    known = np.isfinite(trace) & (trace > 0)
+    if trace.size == 0 or known.mean() < MIN_KNOWN_FRACTION or m <= n:
+        return float("nan")
+    trace = np.where(known, trace, np.median(trace[known]))
+    return float(np.sqrt((m - n) / m * trace.mean()))
+
+
+def _half_bounds(half: int, split: int, image_size) -> tuple[float, float, float, float]:
+    width, height = image_size
+    lo, hi = (-0.5, split - 0.5) if half == 0 else (split - 0.5, width - 0.5)
+    return lo, hi, -0.5, height - 0.5
+
+
+def _where(pixels: np.ndarray, halves: np.ndarray, split: int, image_size) -> str:
+    """Where corners lie: how many at the field edge, and per half."""
+    edge = 0
+    for h in (0, 1):
+        sel = halves == h
+        if not sel.any():
+            continue
+        u0, u1, v0, v1 = _half_bounds(h, split, image_size)
+        centre = np.array([(u0 + u1) / 2, (v0 + v1) / 2])
+        radius = np.hypot((u1 - u0) / 2, (v1 - v0) / 2)
+        r = np.linalg.norm(pixels[sel] - centre, axis=1) / radius
+        edge += int((r > EDGE_RADIUS_FRACTION).sum())
+    left, right = int((halves == 0).sum()), int((halves == 1).sum())
+    return (
+        f"{edge} of them at the field edge (beyond {EDGE_RADIUS_FRACTION:.0%} of each half's "
+        f"radius); left {left}, right {right}"
+    )
+
+
+_ROWS = ("top", "upper middle", "lower middle", "bottom")
+_COLS = ("left", "centre-left", "centre-right", "right")
+
+
+def _structure(
+    pixels: np.ndarray, residuals: np.ndarray, halves: np.ndarray, split: int, image_size,
+    sigma_axis: float,
+) -> str | None:  # fmt: skip
+    """The worst systematic cell of the residual field, or None."""
+    worst = None
+    for h in (0, 1):
+        sel = halves == h
+        u0, u1, v0, v1 = _half_bounds(h, split, image_size)
+        cu = np.clip(((pixels[sel, 0] - u0) / (u1 - u0) * STRUCTURE_CELLS).astype(int), 0, 3)
+        cv = np.clip(((pixels[sel, 1] - v0) / (v1 - v0) * STRUCTURE_CELLS).astype(int), 0, 3)
+        r = residuals[sel]
+        for i in range(STRUCTURE_CELLS):
+            for j in range(STRUCTURE_CELLS):
+                cell = (cv == i) & (cu == j)
+                k = int(cell.sum())
+                if k < STRUCTURE_MIN_CORNERS:
+                    continue
+                mean = r[cell].mean(axis=0)
+                size = float(np.linalg.norm(mean))
+                se = sigma_axis / np.sqrt(k)
+                if size > STRUCTURE_Z * se and size > STRUCTURE_NOISE_FRACTION * sigma_axis:
+                    if worst is None or size > worst[0]:
+                        worst = (size, h, _ROWS[i], _COLS[j], k)
+    if worst is None:
+        return None
+    size, h, row, col, k = worst
+    half = "left" if h == 0 else "right"
+    return (
+        f"systematic residuals: the mean residual of the {k} corners in the {row} {col} of the "
+        f"{half} half is {size:.3f} px ({size / sigma_axis:.1f} times the noise per axis), "
+        "a part of the field the model does not describe"
+    )
+
+
+def _undetermined(free_names: Sequence[str], correlation: np.ndarray) -> str | None:
+    if correlation.size == 0 or not np.all(np.isfinite(correlation)):
+        return None
+    values, vectors = np.linalg.eigh(correlation)
+    if values[0] >= MIN_CORRELATION_EIGENVALUE:
+        return None
+    weights = np.abs(vectors[:, 0])
+    top = [free_names[i] for i in np.argsort(-weights)[:3]]
+    return (
+        f"nearly undetermined: the combination of {', '.join(top)} is hardly constrained by "
+        f"the data (correlation eigenvalue {values[0]:.1e}); fix one of them or add images "
+        "with more tilt and distance"
+    )
+
+
+def judge(result, covariance: np.ndarray, n_unknowns: int) -> Verdict:
+    """Judge a calibration (a ``CalibrationResult``) against its detections' noise.
+
+    Parameters
+    ----------
+    result : CalibrationResult
+    covariance : ndarray, shape (M, 2, 2), px^2
+        The detector's formal covariance of every observation (NaN where unknown).
+    n_unknowns : int
+        Unknowns of the final fit (free parameters and board poses).
+    """
+    inl = np.asarray(result.inliers, dtype=bool)
+    m = 2 * int(inl.sum())
+    floor = noise_floor(np.asarray(covariance)[inl], m, n_unknowns)
+    rms = result.rms
+    ratio = rms / floor if np.isfinite(floor) and floor > 0 else float("nan")
+    outlier_fraction = 1.0 - inl.mean() if inl.size else 0.0
+    config = result.model.config
+    failed, warnings = [], []
+    if not np.isfinite(ratio):
+        warnings.append(
+            "the detection noise is unknown (detections without the detector's precision): the "
+            f"fit's RMS {rms:.4f} px cannot be compared with it; re-run `endomeasure detect`"
+        )
+    elif ratio > FAILED_RMS_RATIO:
+        failed.append(
+            f"RMS {rms:.4f} px is {ratio:.1f} times the detection noise floor {floor:.4f} px "
+            f"(limit {FAILED_RMS_RATIO:g}): the model does not describe this probe, or the "
+            "fit stopped in a wrong minimum"
+        )
+    elif ratio > OK_RMS_RATIO:
+        warnings.append(
+            f"RMS {rms:.4f} px is {ratio:.2f} times the detection noise floor {floor:.4f} px "
+            f"(ok up to {OK_RMS_RATIO:g}): part of the residual is model error"
+        )
+    if outlier_fraction > OUTLIER_WARNING_FRACTION:
+        where = _where(result.obs_pixels[~inl], result.obs_half[~inl], config.split,
+                       config.image_size)  # fmt: skip
+        warnings.append(
+            f"{outlier_fraction:.1%} of the corners were dropped as outliers (over "
+            f"{OUTLIER_WARNING_FRACTION:.0%}): {where}"
+        )
+    sigma_axis = (floor if np.isfinite(floor) else rms) / np.sqrt(2.0)
+    structure = _structure(result.obs_pixels[inl], result.residuals[inl], result.obs_half[inl],
+                           config.split, config.image_size, sigma_axis)  # fmt: skip
+    if structure:
+        warnings.append(structure)
+    undetermined = _undetermined(result.free_names, result.correlation)
+    if undetermined:
+        warnings.append(undetermined)
+    level = "failed" if failed else ("warning" if warnings else "ok")
+    return Verdict(level, tuple(failed + warnings), floor, ratio, float(outlier_fraction))
