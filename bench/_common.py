@@ -218,3 +218,27 @@ def median_time(fn: Callable[[], object], runs: int = 5) -> float:
 
 def machine() -> str:
     return f"Python {platform.python_version()}, {platform.machine()}"
+
+
+def stereo_calibrate_peer(views, boards, image_size, split):
+    """``cv2.stereoCalibrate`` from scratch (``flags=0``) on the corners each image shows in
+    both halves, the right half in its own coordinates: the peer calibration times are
+    compared with. Returns its RMS (px) and the number of corner pairs."""
+    import cv2
+    import numpy as np
+
+    objp, ql, qr = [], [], []
+    for v in views:
+        common = np.intersect1d(v.ids[0], v.ids[1])
+        if common.size < 6:
+            continue
+        il = np.searchsorted(v.ids[0], common, sorter=np.argsort(v.ids[0]))
+        ir = np.searchsorted(v.ids[1], common, sorter=np.argsort(v.ids[1]))
+        il = np.argsort(v.ids[0])[il]
+        ir = np.argsort(v.ids[1])[ir]
+        objp.append(boards[v.board][common].astype(np.float32))
+        ql.append(v.pixels[0][il].astype(np.float32))
+        qr.append((v.pixels[1][ir] - [split, 0.0]).astype(np.float32))
+    size = (max(split, image_size[0] - split), image_size[1])
+    rms = cv2.stereoCalibrate(objp, ql, qr, None, None, None, None, size, flags=0)[0]
+    return float(rms), sum(len(o) for o in objp)

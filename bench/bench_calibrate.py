@@ -33,7 +33,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # for tests.solvers.calibration_data
 
-from _common import BENCHMARKS, Report, Target, script_parser  # noqa: E402
+from _common import BENCHMARKS, Report, Target, script_parser, stereo_calibrate_peer  # noqa: E402
 from endomeasure.solvers.calibrate import calibrate  # noqa: E402
 
 RATIO_TARGET = Target("raytrace calibration time / cv2.stereoCalibrate", "<=", 3.0, "x", "issue 6")
@@ -47,26 +47,6 @@ def _synthetic(n_images: int, seed: int):
     truth = perturbed_raytrace_truth()
     data = synthetic_views(truth, np.random.default_rng(seed), n_images=n_images, noise_px=0.1)
     return data.views, data.boards, (640, 480), 320, f"{n_images} synthetic views, 0.1 px noise"
-
-
-def _stereo_calibrate(views, boards, image_size, split):
-    import cv2
-
-    objp, ql, qr = [], [], []
-    for v in views:
-        common = np.intersect1d(v.ids[0], v.ids[1])
-        if common.size < 6:
-            continue
-        il = np.searchsorted(v.ids[0], common, sorter=np.argsort(v.ids[0]))
-        ir = np.searchsorted(v.ids[1], common, sorter=np.argsort(v.ids[1]))
-        il = np.argsort(v.ids[0])[il]
-        ir = np.argsort(v.ids[1])[ir]
-        objp.append(boards[v.board][common].astype(np.float32))
-        ql.append(v.pixels[0][il].astype(np.float32))
-        qr.append((v.pixels[1][ir] - [split, 0.0]).astype(np.float32))
-    size = (max(split, image_size[0] - split), image_size[1])
-    rms = cv2.stereoCalibrate(objp, ql, qr, None, None, None, None, size, flags=0)[0]
-    return float(rms), sum(len(o) for o in objp)
 
 
 def _median_time(fn, repeat):
@@ -97,7 +77,7 @@ def main(argv=None) -> int:
     n_corners = sum(len(v.ids[0]) + len(v.ids[1]) for v in views)
 
     t_cv, (cv_rms, cv_corners) = _median_time(
-        lambda: _stereo_calibrate(views, boards, size, split), args.repeat
+        lambda: stereo_calibrate_peer(views, boards, size, split), args.repeat
     )
     t_ph, ph = _median_time(lambda: calibrate("pinhole", views, boards, size, split), args.repeat)
     t_rt, rt = _median_time(lambda: calibrate("raytrace", views, boards, size, split), args.repeat)
