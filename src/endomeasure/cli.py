@@ -335,12 +335,16 @@ def info(
         console.print(table)
     if summary.models:
         table = Table(title="models", title_justify="left")
-        for column in ("model", "type", "parameters", "RMS"):
+        for column in ("model", "type", "parameters", "RMS", "verdict"):
             table.add_column(column, justify="right" if column in ("parameters", "RMS") else "left")
         for model in summary.models:
             rms = f"{model['rms']:.4f} {model['rms_units']}" if "rms" in model else "-"
-            table.add_row(model["name"], model["registry_name"], str(model["n_params"]), rms)
+            table.add_row(model["name"], model["registry_name"], str(model["n_params"]), rms,
+                          model["verdict"])  # fmt: skip
         console.print(table)
+        for model in summary.models:
+            for reason in model["verdict_reasons"]:
+                console.print(f"{model['name']} {model['verdict']}: {reason}", markup=False)
     if summary.records:
         records = ", ".join(f"{n} {kind}" for kind, n in summary.records.items())
         console.print(f"records: {records}")

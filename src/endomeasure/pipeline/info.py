@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from endomeasure.conventions import Half
+from endomeasure.io.records import stored_verdict
 from endomeasure.io.session import IMAGE_SETS, open_session
 
 __all__ = ["SessionSummary", "summarise_session"]
@@ -30,7 +31,8 @@ class SessionSummary:
         Per board and half: ``images`` (detections stored), ``found`` (succeeded),
         ``failed``, ``corners`` (total over the successful ones).
     models : list of dict
-        ``name``, ``registry_name``, ``n_params`` and, when stored, ``rms`` with
+        ``name``, ``registry_name``, ``n_params``, ``verdict`` (``unjudged`` for models
+        stored without one) with ``verdict_reasons`` and, when stored, ``rms`` with
         ``rms_units``.
     records : dict of str to int
         Number of records per kind.
@@ -100,6 +102,7 @@ def summarise_session(path: str | os.PathLike) -> SessionSummary:
             if "rms" in model.attrs:
                 entry["rms"] = float(model.attrs["rms"])
                 entry["rms_units"] = model.units.get("rms", "px")
+            entry["verdict"], entry["verdict_reasons"] = stored_verdict(model)
             models.append(entry)
 
         records = {kind: len(session.record_names(kind)) for kind in session.record_kinds()}
