@@ -89,6 +89,8 @@ def test_info_json_is_one_document_with_the_counts(session):
             "n_params": 3,
             "rms": 0.25,
             "rms_units": "px",
+            "verdict": "unjudged",  # stored without a verdict
+            "verdict_reasons": [],
         }
     ]
     assert doc["records"] == {"measurement": 2}
