@@ -893,6 +893,9 @@ def _render_board_test(console: Console, report: Any) -> None:
             "-" if rel is None else f"{rel:+.3f}",
         )
     console.print(table)
+    for name, verdict in report.verdicts.items():
+        if verdict == "failed":
+            console.print(f"{name}: its calibration failed; figures for comparison only")
     n_images = {name: len(m.images) for name, m in report.models.items()}
     console.print(
         "test images per model: "

@@ -405,6 +405,8 @@ class BoardTestReport:
     zone_mm: float
     models: dict[str, ModelBoardTest]
     plot: str | None
+    verdicts: dict[str, str] = dataclasses.field(default_factory=dict)
+    """Each model's calibration verdict (a failed one is tested for comparison only)."""
 
     def summary_rows(self) -> list[dict[str, Any]]:
         rows = []
@@ -423,6 +425,7 @@ class BoardTestReport:
             "zone_mm": self.zone_mm,
             "summary": self.summary_rows(),
             "plot": self.plot,
+            "verdicts": dict(self.verdicts),
         }
         if details:
             models = {}
@@ -514,9 +517,10 @@ def board_test(
     with open_session(session) as reader:
         names = _models_to_run(reader, model, session)
         # the board test is the diagnostic that shows a failed calibration's errors
-        models = {
-            n: load_calibrated_model(reader, n, session, allow_failed=True).model for n in names
+        calibrated = {
+            n: load_calibrated_model(reader, n, session, allow_failed=True) for n in names
         }
+        models = {n: cm.model for n, cm in calibrated.items()}
         boards = {name: b.attrs for name, b in reader.boards().items()}
         sets = board_sets(boards, reader.detections(), reader.image_names("test"), str(session))
     results = {}
@@ -533,4 +537,5 @@ def board_test(
         from endomeasure.measure.plots import plot_board_test
 
         written = str(plot_board_test(results, zone_mm, plot))
-    return BoardTestReport(str(session), float(zone_mm), results, written)
+    verdicts = {n: cm.verdict for n, cm in calibrated.items()}
+    return BoardTestReport(str(session), float(zone_mm), results, written, verdicts)
