@@ -77,6 +77,13 @@ def _rotation(tilt_x: float, tilt_y: float, roll: float) -> np.ndarray:
     )
 
 
+def _aim_point(spec: dict, z: float) -> np.ndarray:
+    """Where a set's poses centre at depth z: on the direction ``centre_deg`` (x, y tilts
+    of the common field's centre, default the optical axis)."""
+    ax, ay = np.radians(spec.get("centre_deg", (0.0, 0.0)))
+    return np.array([z * np.tan(ax), z * np.tan(ay), 0.0])
+
+
 def _place_board(board, R: np.ndarray, centre: np.ndarray):
     return board.with_pose(R, centre - R @ board.centre_board)
 
@@ -136,6 +143,7 @@ def _calib(preset: Preset, seed: int) -> list[Shot]:
     max_tilt = np.radians(float(spec["max_tilt_deg"]))
     max_roll = np.radians(float(spec["max_roll_deg"]))
     groups = spec["boards"]
+    default_reach = np.tan(np.radians(float(spec.get("max_offset_deg", 25.0))))
     total = sum(int(g["images"]) for g in groups)
     n_partial = int(spec.get("partial_images", 0))
     partial_at = set(
@@ -162,8 +170,11 @@ def _calib(preset: Preset, seed: int) -> list[Shot]:
                 roll = rng.uniform(-1, 1) * max_roll
                 R = _rotation(tx, ty, roll)
                 z = z_all[k]
-                reach = np.tan(np.radians(25.0)) * z * (1.0 if partial else 0.5)
+                reach = np.tan(np.radians(float(group["max_offset_deg"]))) if (
+                    "max_offset_deg" in group) else default_reach  # fmt: skip
+                reach *= z * (1.0 if partial else 0.5)
                 centre = np.array([rng.uniform(-reach, reach), rng.uniform(-reach, reach) * 0.8, z])
+                centre += _aim_point(group, z)
                 candidate = _place_board(base, R, centre)
                 vis = visibility(preset, candidate, clearance)
                 if partial:
@@ -198,10 +209,11 @@ def _test(preset: Preset, seed: int) -> list[Shot]:
         base = target_from_preset(group["target"], preset.targets[group["target"]])
         lo, hi = (float(v) for v in group["distance_mm"])
         step = float(group["step_mm"])
+        offset = float(group.get("max_offset_mm", max_offset))
         for z in np.arange(lo, hi + step / 2, step):
             tx, ty, roll = rng.uniform(-1, 1, 3) * max_tilt
             R = _rotation(tx, ty, roll)
-            centre = np.array([*(rng.uniform(-1, 1, 2) * max_offset), z])
+            centre = np.array([*(rng.uniform(-1, 1, 2) * offset), z]) + _aim_point(group, z)
             shots.append(Shot("test", index, _place_board(base, R, centre)))
             index += 1
     return shots
@@ -215,6 +227,7 @@ def _scene(preset: Preset, seed: int) -> list[Shot]:
     n = int(spec["images"])
     lo, hi = (float(v) for v in spec["distance_mm"])
     max_tilt = np.radians(float(spec["max_tilt_deg"]))
+    offset = float(spec.get("max_offset_mm", 1.0))
     z_all = lo + (np.arange(n) + rng.uniform(0.2, 0.8, n)) / n * (hi - lo)
     shots = []
     for k in range(n):
@@ -222,7 +235,7 @@ def _scene(preset: Preset, seed: int) -> list[Shot]:
             tx, ty = rng.uniform(-1, 1, 2) * max_tilt
             roll = rng.uniform(-np.pi / 8, np.pi / 8)
             R = _rotation(tx, ty, roll)
-            t = np.array([*(rng.uniform(-1, 1, 2) * 1.0), z_all[k]])
+            t = np.array([*(rng.uniform(-1, 1, 2) * offset), z_all[k]]) + _aim_point(spec, z_all[k])
             surface = base.with_pose(R, t)
             marks = surface.marks_camera
             if all(clearance.inside(marks, h)[1].all() for h in Half):

@@ -49,6 +49,7 @@ AIM_TOL_PX = 1e-11
 """Ray aiming stops when the pixel step falls below this, px (double precision on lens
 coordinates of order 1 and focal lengths of order 1000 px allows about 1e-12 px)."""
 AIM_MAX_ITER = 60
+_AIM_HALVINGS = 10  # step halvings before aiming gives up on a point (no descent left)
 AIM_FD_STEP = 1e-7  # central-difference step on the ideal lens coordinates (normalised)
 LENS_TOL = 1e-15  # Newton tolerance of the lens map inverse, normalised units
 LENS_MAX_ITER = 40
@@ -327,7 +328,7 @@ class TruthOptics:
         status[~ok] = Status.NOT_CONVERGED
         status[~np.all(np.isfinite(q), axis=-1)] = Status.INVALID_INPUT
         inside = in_half(q, half, self.config.split, self.config.image_size)
-        status[(status == Status.OK) & ~inside] = Status.OUTSIDE_HALF
+        status[(status != Status.INVALID_INPUT) & ~inside] = Status.OUTSIDE_HALF
         bad = status != Status.OK
         o, d = traced.origins.copy(), traced.directions.copy()
         o[bad] = np.nan
@@ -400,7 +401,8 @@ class TruthOptics:
             # damp steps that would leave the traceable region or grow the miss
             norm_e = np.hypot(e[:, 0], e[:, 1])
             lam = np.ones(idx.size)
-            for _ in range(8):
+            worse = np.zeros(idx.size, dtype=bool)
+            for _ in range(_AIM_HALVINGS):
                 trial = self._miss(xa - lam * sx, ya - lam * sy, p, half)
                 worse = ~(np.hypot(trial[:, 0], trial[:, 1]) <= norm_e * (1 - 1e-4 * lam))
                 worse &= np.maximum(np.abs(sx), np.abs(sy)) * lam * scale > 1e-6
@@ -412,7 +414,8 @@ class TruthOptics:
             step_px = np.maximum(np.abs(sx), np.abs(sy)) * lam * scale
             finished = step_px < AIM_TOL_PX
             done[idx[finished & (lam == 1.0)]] = True
-            failed = ~np.isfinite(step_px) | ~np.isfinite(norm_e)
+            # no descent left: the point lies beyond what the half's rays reach
+            failed = ~np.isfinite(step_px) | ~np.isfinite(norm_e) | worse
             active[idx[finished | failed]] = False
         return x, y, done
 

@@ -1,0 +1,589 @@
+"""A design space of forward-view biprism probes: whole presets drawn at random.
+
+:func:`draw_design` turns a seed into a complete preset document (the format of
+``presets/default.json``) of a plausible probe: sensor, lens (distortion defined either
+way, tangential terms, off-centre principal point, a pupil moving with field), biprism
+(glass, unequal wedges, tilted rear face, off-axis tilted apex line, face offsets),
+illumination, three chessboards and the paper's protocol, all scaled to the drawn
+optics. Designs that are not physical (total internal reflection inside the field, a lens
+map that folds inside the image, a split band outside the image, halves without enough
+common field for the boards) are redrawn from a deterministic sub-seed, so the result is
+a pure function of the seed. Every range, and where it comes from: ``docs/simulator.md``,
+"Design space".
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+import numpy as np
+
+from endomeasure.conventions import Half, Status
+from endomeasure.simulate.preset import PRESET_FORMAT, PRESET_VERSION, Preset
+from endomeasure.simulate.truth_optics import TruthOptics
+
+__all__ = [
+    "DESIGN_RANGES_VERSION",
+    "RANGES",
+    "GLASSES",
+    "SENSOR_FORMATS",
+    "draw_design",
+    "common_field",
+    "DesignError",
+]
+
+DESIGN_RANGES_VERSION = 1
+
+SENSOR_FORMATS = {
+    "4:3": ((320, 240), (400, 300), (640, 480), (800, 600), (1024, 768), (1280, 960), (1600, 1200)),
+    "16:10": ((640, 400), (1280, 800), (1440, 900)),
+    "5:4": ((640, 512), (1280, 1024)),
+}
+ASPECT_WEIGHTS = {"4:3": 0.7, "16:10": 0.15, "5:4": 0.15}
+
+GLASSES = (
+    ("fused silica", 1.4585), ("N-FK5", 1.4875), ("N-BK7", 1.5168), ("N-K5", 1.5224),
+    ("N-BAK4", 1.5688), ("N-SK16", 1.6204), ("N-F2", 1.6200), ("N-SF5", 1.6727),
+    ("N-SF11", 1.7847), ("N-SF57", 1.8467), ("N-LASF9", 1.8503), ("N-SF66", 1.9229),
+)  # fmt: skip
+"""Prism glasses and their index at the helium d-line (Schott / Heraeus catalogues)."""
+
+RANGES: dict[str, Any] = {
+    "sensor_width_mm": (1.8, 5.4),
+    "pixel_pitch_um": (1.4, 8.0),
+    "full_field_deg": (80.0, 140.0),
+    "corner_distortion": (0.0, 0.35),
+    "tangential": (-5e-4, 5e-4),
+    "principal_offset_fraction": 0.03,
+    "principal_offset_max_px": 40.0,
+    "fy_over_fx": (0.995, 1.005),
+    "pupil_shift_mm": (0.0, 0.1),
+    "wedge_deg": (15.0, 45.0),
+    "deviation_fraction": (0.85, 1.15),
+    "wedge_asymmetry_deg": 3.0,
+    "front_b_deg": 0.5,
+    "rear_tilt_deg": 1.0,
+    "rear_distance_mm": (0.3, 1.5),
+    "thickness_mm": (0.8, 3.0),
+    "apex_offset_fraction": 0.08,
+    "apex_y_mm": 0.05,
+    "face_offset_mm": 0.02,
+    "near_over_convergence": (4.0, 7.0),
+    "far_over_near": (3.5, 5.0),
+    "f_number": (4.0, 8.0),
+    "psf_sigma_px": (0.45, 0.7),
+    "vignetting_exponent": (1.0, 2.0),
+    "apex_band_depth": (0.85, 0.97),
+    "read_noise_e": (8.0, 15.0),
+}
+"""The documented ranges of :func:`draw_design` (uniform unless docs say otherwise)."""
+
+MIN_SQUARE_PX = 9.0
+"""A board's squares are at least this many px wide at the far end of its distances."""
+BOARD_FILL = 0.7
+"""A board's checker area spans at most this fraction of the common field at its near end."""
+RANGE_RATIO = 1.4
+"""The small board's squares are this many times ``MIN_SQUARE_PX`` at the near end, so
+its range spans at least this ratio of distances."""
+MAX_TIR_FRACTION = 0.02
+"""TIR may darken at most this fraction of the image, and none of the middle half of rows."""
+MAX_ATTEMPTS = 200
+_GRID = (64, 48)  # pixels per axis checked for TIR and lens folding
+_BOARDS = (("board_s", 8, 6), ("board_m", 6, 5), ("board_l", 6, 5))
+
+
+class DesignError(ValueError):
+    """A drawn design is not physical (the reason says why); the caller redraws."""
+
+
+def _u(rng, lo_hi) -> float:
+    lo, hi = lo_hi
+    return float(rng.uniform(lo, hi))
+
+
+def _sensor(rng) -> dict[str, Any]:
+    names = list(ASPECT_WEIGHTS)
+    aspect = names[rng.choice(len(names), p=[ASPECT_WEIGHTS[n] for n in names])]
+    formats = SENSOR_FORMATS[aspect]
+    width, height = formats[rng.integers(len(formats))]
+    pitch = float(
+        np.clip(_u(rng, RANGES["sensor_width_mm"]) / width * 1e3, *RANGES["pixel_pitch_um"])
+    )
+    return {
+        "image_size": [int(width), int(height)],
+        "pixel_pitch_um": round(pitch, 3),
+        "full_well_e": round(6000.0 * (pitch / 3.75) ** 2, 1),
+        "read_noise_e": round(_u(rng, RANGES["read_noise_e"]), 2),
+        "black_level_dn": 3.0,
+        "exposure_target": 0.75,
+        "exposure_percentile": 99.0,
+    }
+
+
+def _profile(rng) -> np.ndarray:
+    """Weights of r^2, r^4, r^6, r^8 in the distortion at the corner (sum 1, r^2 leading)."""
+    w = np.array([rng.uniform(0.6, 1.0), *rng.uniform(-0.25, 0.25, 3)])
+    w[1:] *= (1.0 - w[0]) / max(abs(w[1:].sum()), 1e-3) if abs(w[1:].sum()) > 1e-3 else 0.0
+    w[0] = 1.0 - w[1:].sum()
+    return w
+
+
+def _lens(rng, width: int, height: int) -> dict[str, Any]:
+    """The lens: field across the width, corner distortion, direction, pupil law."""
+    half_h = np.radians(_u(rng, RANGES["full_field_deg"])) / 2.0
+    big_d = _u(rng, RANGES["corner_distortion"])
+    direction = "ray_to_pixel" if rng.uniform() < 0.5 else "pixel_to_ray"
+    w = _profile(rng)
+    a = (width / 2.0) / np.hypot(width / 2.0, height / 2.0)  # edge / corner radius ratio
+    powers = np.arange(1, 5)
+    if direction == "ray_to_pixel":
+        # r_d = r (1 - D sum w_i rho^2i), rho = r / r_corner; the edge ideal radius tan(half_h)
+        def edge_ratio(rc):
+            rho = np.tan(half_h) / rc
+            return np.tan(half_h) * (1 - big_d * (w @ rho ** (2 * powers))) - a * rc * (1 - big_d)
+
+        lo, hi = np.tan(half_h), np.tan(half_h) / a * 2.0
+        for _ in range(100):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if edge_ratio(mid) > 0 else (lo, mid)
+        r_corner = 0.5 * (lo + hi)
+        rd_corner = r_corner * (1 - big_d)
+        k = -big_d * w / r_corner ** (2 * powers)
+        theta_corner = np.arctan(r_corner)
+    else:
+        # r = r_d (1 + D' sum w_i rho_d^2i), D' = D / (1 - D): r_d / r = 1 - D at the corner
+        dp = big_d / (1.0 - big_d)
+        rd_corner = np.tan(half_h) / (a * (1.0 + dp * (w @ a ** (2 * powers))))
+        k = dp * w / rd_corner ** (2 * powers)
+        theta_corner = np.arctan(rd_corner * (1.0 + dp))
+    fx = float(np.hypot(width / 2.0, height / 2.0) / rd_corner)
+    off = min(RANGES["principal_offset_fraction"] * width, RANGES["principal_offset_max_px"])
+    return {
+        "fx": round(fx, 4),
+        "fy": round(fx * _u(rng, RANGES["fy_over_fx"]), 4),
+        "cx": round((width - 1) / 2.0 + rng.uniform(-1, 1) * off, 3),
+        "cy": round((height - 1) / 2.0 + rng.uniform(-1, 1) * off * height / width, 3),
+        "distortion_direction": direction,
+        **{f"k{i + 1}": float(k[i]) for i in range(4)},
+        "p1": _u(rng, RANGES["tangential"]),
+        "p2": _u(rng, RANGES["tangential"]),
+        "pupil_shift_mm": round(_u(rng, RANGES["pupil_shift_mm"]), 4),
+        "pupil_edge_deg": round(float(np.degrees(theta_corner)), 3),
+        "f_number": round(_u(rng, RANGES["f_number"]), 2),
+        "psf_sigma_px": round(_u(rng, RANGES["psf_sigma_px"]), 3),
+        "vignetting_exponent": round(_u(rng, RANGES["vignetting_exponent"]), 3),
+        "_full_field_deg": float(np.degrees(2 * half_h)),
+        "_corner_distortion": big_d,
+    }
+
+
+def _wedge_limit(n: float, vertical_half_rad: float) -> float:
+    """Largest wedge (rad) whose front face passes the apex column's top ray without TIR:
+    ``cos(inc) = cos(a) cos(phi_in)`` with ``phi_in`` the refracted vertical angle."""
+    phi_in = np.arcsin(np.sin(vertical_half_rad) / n)
+    c = np.cos(np.arcsin(1.0 / n)) / np.cos(phi_in)
+    return float(np.arccos(min(1.0, c)))
+
+
+def _wedge_for_deviation(n: float, deviation: float) -> float:
+    """Wedge angle (rad) whose centre ray, normal to the rear face, leaves deviated by
+    ``deviation`` (rad): ``asin(n sin a) - a = deviation`` (solved by bisection)."""
+    lo, hi = 0.0, float(np.arcsin(1.0 / n))
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.arcsin(n * np.sin(mid)) - mid < deviation else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def _prism(rng, lens: dict[str, Any], width: int, height: int) -> dict[str, Any]:
+    """The biprism: the wedge deviates each half's view by a fraction of the half field
+    (a quarter of the full field overlaps the halves best), kept clear of TIR."""
+    name, n = GLASSES[rng.integers(len(GLASSES))]
+    vertical = np.arctan(height / 2.0 / lens["fy"])  # distorted: a lower bound of the field
+    lo, hi = RANGES["wedge_deg"]
+    limit = min(hi, np.degrees(_wedge_limit(n, vertical)))
+    deviation = np.radians(lens["_full_field_deg"]) / 4.0 * _u(rng, RANGES["deviation_fraction"])
+    wedge = min(np.degrees(_wedge_for_deviation(n, deviation)), limit - rng.uniform(0.0, 2.0))
+    if not lo <= wedge <= hi:
+        raise DesignError(f"glass {name}: the wedge {wedge:.1f} deg is outside {lo}-{hi} deg")
+    asym = RANGES["wedge_asymmetry_deg"]
+    a_left = -(wedge + rng.uniform(-asym, asym))
+    a_right = wedge + rng.uniform(-asym, asym)
+    rear_d = _u(rng, RANGES["rear_distance_mm"])
+    apex_z = rear_d + _u(rng, RANGES["thickness_mm"])
+    apex_x = rng.uniform(-1, 1) * RANGES["apex_offset_fraction"] * width / lens["fx"] * apex_z
+    tilt, fb, off = RANGES["rear_tilt_deg"], RANGES["front_b_deg"], RANGES["face_offset_mm"]
+    return {
+        "glass": name,
+        "n_glass": n,
+        "rear_face": {
+            "a_deg": round(rng.uniform(-tilt, tilt), 4),
+            "b_deg": round(rng.uniform(-tilt, tilt), 4),
+            "d_mm": round(rear_d, 4),
+        },
+        "left_face": {
+            "a_deg": round(a_left, 4),
+            "b_deg": round(rng.uniform(-fb, fb), 4),
+            "offset_mm": round(rng.uniform(-off, off), 5),
+        },
+        "right_face": {
+            "a_deg": round(a_right, 4),
+            "b_deg": round(rng.uniform(-fb, fb), 4),
+            "offset_mm": round(rng.uniform(-off, off), 5),
+        },
+        "apex_mm": [
+            round(apex_x, 5),
+            round(rng.uniform(-1, 1) * RANGES["apex_y_mm"], 5),
+            round(apex_z, 4),
+        ],
+        "apex_band_depth": round(_u(rng, RANGES["apex_band_depth"]), 3),
+    }
+
+
+def _check_optics(optics: TruthOptics) -> None:
+    """Raise :class:`DesignError` where the optics are not physical over the image."""
+    width, height = optics.config.image_size
+    uu, vv = np.meshgrid(np.linspace(0, width - 1, _GRID[0]), np.linspace(0, height - 1, _GRID[1]))
+    q = np.stack([uu.ravel(), vv.ravel()], -1)
+    status = np.full(q.shape[0], 255)
+    for half in Half:
+        st = optics.rays(q, half).status
+        status = np.where(st != Status.OUTSIDE_HALF, st, status)
+    tir = status == Status.TOTAL_INTERNAL_REFLECTION
+    middle = (q[:, 1] > height / 4) & (q[:, 1] < 3 * height / 4)
+    if tir.mean() > MAX_TIR_FRACTION or (tir & middle).any():
+        raise DesignError(f"total internal reflection in {tir.mean():.1%} of the image")
+    if np.any((status != Status.OK) & ~tir):
+        raise DesignError("the lens map folds or a face is missed inside the image")
+    cols = optics.apex_columns(np.linspace(0, height - 1, 9))
+    if not np.all(np.isfinite(cols)) or cols.min() < 0.2 * width or cols.max() > 0.8 * width:
+        raise DesignError("the apex band leaves the middle 60 % of the image width")
+
+
+def _footprints(optics: TruthOptics, z: float, points: np.ndarray, margin_px: float):
+    """Whether each point (N, 2) of the plane at depth z is seen in both halves, clear of
+    the border and of the apex image by ``margin_px``: each half's pixel grid is traced
+    to the plane and the pixel of a point interpolated linearly (Delaunay)."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    width, height = optics.config.image_size
+    rows = np.linspace(0, height - 1, 9)
+    apex = optics.apex_columns(rows)
+    seen = np.ones(points.shape[0], dtype=bool)
+    for half in Half:
+        lo, hi = (
+            (0, optics.config.split - 1) if half is Half.LEFT else (optics.config.split, width - 1)
+        )
+        q = np.stack(np.meshgrid(np.linspace(lo, hi, 40), np.linspace(0, height - 1, 40)), -1)
+        q = q.reshape(-1, 2)
+        r = optics.rays(q, half)
+        ok = (r.status == Status.OK) & (r.directions[:, 2] > 0)
+        s = (z - r.origins[ok, 2]) / r.directions[ok, 2]
+        xy = r.origins[ok, :2] + s[:, None] * r.directions[ok, :2]
+        uv = LinearNDInterpolator(xy, q[ok])(points)
+        with np.errstate(invalid="ignore"):
+            inside = (uv[:, 0] > margin_px) & (uv[:, 0] < width - 1 - margin_px)
+            inside &= (uv[:, 1] > margin_px) & (uv[:, 1] < height - 1 - margin_px)
+            u_apex = np.interp(uv[:, 1], rows, apex)
+            if half is Half.LEFT:
+                inside &= uv[:, 0] < u_apex - margin_px
+            else:
+                inside &= uv[:, 0] > u_apex + margin_px
+        seen &= inside
+    return seen
+
+
+def common_field(optics: TruthOptics, z: float, margin_px: float = 4.0) -> dict[str, float]:
+    """The region of the plane at depth ``z`` (mm) both halves see, clear of the borders
+    and of ``margin_px`` around the apex image: its centre, width and height along the
+    lines through the centre, mm, and its scale (px per mm, the smaller of the halves)."""
+    reach = z * 3.0
+    xs = np.linspace(-reach, reach, 241)
+    gx, gy = np.meshgrid(xs, xs)
+    seen = _footprints(optics, z, np.stack([gx.ravel(), gy.ravel()], -1), margin_px)
+    seen = seen.reshape(gx.shape)
+    if seen.sum() < 4:
+        raise DesignError(f"the halves see nothing in common at {z:.1f} mm")
+    iy, ix = np.nonzero(seen)
+    cy, cx = int(np.round(np.median(iy))), int(np.round(np.median(ix)))
+    xc, yc = float(xs[cx]), float(xs[cy])
+    step = xs[1] - xs[0]
+    w = float(seen[cy].sum() * step)
+    h = float(seen[:, cx].sum() * step)
+    probe = np.array([[xc - 0.5, yc, z], [xc + 0.5, yc, z], [xc, yc - 0.5, z], [xc, yc + 0.5, z]])
+    scale = np.inf
+    for half in Half:
+        q = optics.project(probe, half).pixels
+        scale = min(scale, np.linalg.norm(q[1] - q[0]), np.linalg.norm(q[3] - q[2]))
+    if not np.isfinite(scale):
+        raise DesignError(f"the common field's centre at {z:.1f} mm is not seen in both halves")
+    return {"x_mm": xc, "y_mm": yc, "width_mm": w, "height_mm": h, "px_per_mm": float(scale)}
+
+
+def _baseline(optics: TruthOptics) -> float:
+    """Distance between the halves' virtual viewpoints (points nearest their rays), mm."""
+    width, height = optics.config.image_size
+    centres = []
+    for half in Half:
+        lo, hi = (
+            (0, optics.config.split - 1) if half is Half.LEFT else (optics.config.split, width - 1)
+        )
+        q = np.stack(
+            np.meshgrid(np.linspace(lo, hi, 12), np.linspace(0, height - 1, 9)), -1
+        ).reshape(-1, 2)
+        r = optics.rays(q, half)
+        ok = r.status == Status.OK
+        o, d = r.origins[ok], r.directions[ok]
+        P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+        centres.append(np.linalg.solve(P.sum(0), np.einsum("nij,nj->i", P, o)))
+    return float(np.linalg.norm(centres[1] - centres[0]))
+
+
+def _convergence(optics: TruthOptics, baseline: float) -> float:
+    """Distance (mm) where the halves' views begin to overlap: the common width grows as
+    ``w = a z - c`` far out, so ``z0 = c / a`` (from two distances many baselines out)."""
+    z1, z2 = 20.0 * baseline, 40.0 * baseline
+    w1, w2 = (common_field(optics, z)["width_mm"] for z in (z1, z2))
+    a = (w2 - w1) / (z2 - z1)
+    if not a > 0:
+        raise DesignError("the halves' common field does not grow with distance")
+    return float(max(baseline, (a * z1 - w1) / a))
+
+
+def _round2(x: float, how: str = "nearest") -> float:
+    """Two significant digits (board squares as a printer would make them)."""
+    e = 10.0 ** (np.floor(np.log10(x)) - 1)
+    rounding = {"nearest": np.round, "up": np.ceil, "down": np.floor}[how]
+    return round(float(rounding(x / e) * e), 12)
+
+
+def _fit_distance(cfs: list[dict], zs: np.ndarray, board: tuple, square: float) -> float:
+    """Distance (mm) from which the board's checker area fits ``BOARD_FILL`` of the common
+    field (interpolated; inf if it never fits within the sampled distances)."""
+    _, cols, rows = board
+    room = np.array([
+        min(BOARD_FILL * cf["width_mm"] / (cols + 1), BOARD_FILL * cf["height_mm"] / (rows + 1))
+        for cf in cfs
+    ])  # fmt: skip  # the largest square that fits at each distance
+    if room[0] >= square:
+        return float(zs[0])
+    if room[-1] < square:
+        return np.inf
+    k = int(np.argmax(room >= square))
+    return float(np.interp(square, room[k - 1 : k + 1], zs[k - 1 : k + 1]))
+
+
+def _boards(optics: TruthOptics, near: float, far: float):
+    """Three boards and the distances each is detectable at.
+
+    The small board fills ``BOARD_FILL`` of the common field at the near end, the large
+    one has squares of at least ``MIN_SQUARE_PX`` at the far end and fits from 1/1.6 of
+    it, the middle one is their geometric mean. Each board's range runs from where it
+    first fits to where its squares shrink to ``MIN_SQUARE_PX`` (within the working
+    range); the ranges must overlap so that together they span the working range.
+    """
+    zs = np.geomspace(near, far, 9)
+    cfs = [common_field(optics, float(z)) for z in zs]
+    focal = np.array([cf["px_per_mm"] * z for cf, z in zip(cfs, zs, strict=True)])
+    # the small board: as many corners (up to the default's 8 x 6) as fit BOARD_FILL of
+    # the common field at the near end with squares RANGE_RATIO x MIN_SQUARE_PX wide
+    room_px = BOARD_FILL * np.array([cfs[0]["width_mm"], cfs[0]["height_mm"]]) * focal[0] / near
+    fit = np.floor(room_px / (RANGE_RATIO * MIN_SQUARE_PX)).astype(int) - 1
+    cols = int(min(_BOARDS[0][1], fit[0]))
+    rows = int(min(_BOARDS[0][2], fit[1], cols - 1))
+    if rows < 3:
+        raise DesignError(f"the common field at {near:.1f} mm holds no board of 4 x 3 corners")
+    layouts = [(_BOARDS[0][0], cols, rows)] + [
+        (name, min(c, cols), min(r, rows)) for name, c, r in _BOARDS[1:]
+    ]
+    small = _round2(
+        BOARD_FILL * min(cfs[0]["width_mm"] / (cols + 1), cfs[0]["height_mm"] / (rows + 1)), "down"
+    )
+    late = common_field(optics, far / 1.6)
+    _, lcols, lrows = layouts[-1]
+    large = max(
+        MIN_SQUARE_PX * far / focal[-1],
+        BOARD_FILL * min(late["width_mm"] / (lcols + 1), late["height_mm"] / (lrows + 1)),
+    )
+    large = _round2(large, "up")
+    squares = (small, _round2(np.sqrt(small * large)), large)
+    out = []
+    for board, square in zip(layouts, squares, strict=True):
+        lo = max(near, _fit_distance(cfs, zs, board, square))
+        px = focal * square / zs  # square width in px at each sampled distance
+        hi = far if px[-1] >= MIN_SQUARE_PX else float(np.interp(-MIN_SQUARE_PX, -px, zs))
+        if not hi >= 1.2 * lo:
+            raise DesignError(f"{board[0]} ({square:.3g} mm squares) fits no range of distances")
+        out.append((board, square, lo, hi))
+    if out[1][2] > out[0][3] or out[2][2] > out[1][3]:
+        raise DesignError("the boards' distance ranges leave a gap in the working range")
+    return out, cfs, zs, focal
+
+
+def _targets(boards, scene: dict, charuco_mm: float) -> dict[str, Any]:
+    targets = {
+        name: {"kind": "chessboard", "cols": cols, "rows": rows, "square_mm": square,
+               "margin_squares": 1.0, "black": 0.06, "white": 0.85}
+        for (name, cols, rows), square, _, _ in boards
+    }  # fmt: skip
+    targets["metal"] = scene
+    targets["charuco"] = {
+        "kind": "charuco", "squares_x": 24, "squares_y": 20, "square_mm": charuco_mm,
+        "marker_mm": round(0.75 * charuco_mm, 6), "dictionary": "DICT_4X4_250",
+        "texels_per_square": 96, "margin_squares": 1.0, "black": 0.06, "white": 0.85,
+    }  # fmt: skip
+    return targets
+
+
+def _protocol(rng, optics: TruthOptics, apex_z: float) -> dict[str, Any]:
+    """Working range, illumination, targets and image sets scaled to the optics."""
+    baseline = _baseline(optics)
+    near = _convergence(optics, baseline) * _u(rng, RANGES["near_over_convergence"])
+    far = near * _u(rng, RANGES["far_over_near"])
+    boards, cfs, zs, focal = _boards(optics, near, far)
+    width = optics.config.image_size[0]
+
+    def centre_deg(z):
+        cf = cfs[int(np.argmin(np.abs(zs - z)))]
+        return [round(float(np.degrees(np.arctan(cf[k] / z))), 4) for k in ("x_mm", "y_mm")]
+
+    def offset_deg(z):
+        cf = cfs[int(np.argmin(np.abs(zs - z)))]
+        return round(float(np.degrees(np.arctan(min(cf["width_mm"], cf["height_mm"]) / z))), 4)
+
+    calib = [
+        {"target": name, "images": 12, "distance_mm": [round(lo, 3), round(hi, 3)],
+         "centre_deg": centre_deg(lo), "max_offset_deg": offset_deg(lo)}
+        for (name, _, _), _, lo, hi in boards
+    ]  # fmt: skip
+    test = []
+    for (name, _, _), square, lo, hi in boards[1:]:
+        lo_t, hi_t = lo * 1.03, hi * 0.97
+        step = (hi_t - lo_t) / 11.0
+        test.append({"target": name, "distance_mm": [round(lo_t, 3), round(lo_t + 11 * step, 3)],
+                     "step_mm": round(step, 4), "centre_deg": centre_deg(0.5 * (lo + hi)),
+                     "max_offset_mm": round(0.3 * square, 4)})  # fmt: skip
+    _, _, lo_m, hi_m = boards[1]
+    z_scene = (lo_m, 0.5 * (lo_m + hi_m))
+    cf = cfs[int(np.argmin(np.abs(zs - z_scene[0])))]
+    mark_scale = 0.5 * min(cf["width_mm"], cf["height_mm"]) / 2.0 / 5.5
+    pattern = [[-3.0, -2.5], [2.5, -3.0], [0.5, 0.5], [-2.5, 3.0], [3.0, 2.5], [0.0, -5.5]]
+    scene = {
+        "kind": "cylinder", "radius_mm": round(z_scene[1] * _u(rng, (0.8, 1.5)), 3),
+        "albedo": 0.45, "texture_contrast": 0.35, "specular": 0.35, "shininess": 18.0,
+        "texture_seed": int(rng.integers(1, 1000)),
+        "mark_radius_mm": round(2.5 * z_scene[1] / float(np.interp(z_scene[1], zs, focal)), 5),
+        "mark_albedo": 0.05,
+        "marks_mm": [[round(a * mark_scale, 4), round(b * mark_scale, 4)] for a, b in pattern],
+    }  # fmt: skip
+    charuco_far = 2.0 * near
+    charuco_mm = _round2(1.7 * (width / 2.0) / float(focal[0]) * charuco_far / 24.0)
+    y_light = 1.7 * baseline
+    return {
+        "illumination": {
+            "sources_mm": [[0.0, -round(y_light, 3), round(apex_z - 0.2, 3)],
+                           [0.0, round(y_light, 3), round(apex_z - 0.2, 3)]],
+            "lobe_exponent": 1.5, "background_mm": round(2.0 * far, 2), "background_albedo": 0.3,
+        },
+        "targets": _targets(boards, scene, charuco_mm),
+        "sets": {
+            "calib": {"boards": calib, "max_tilt_deg": 30.0, "max_roll_deg": 5.0,
+                      "partial_images": 2},
+            "test": {"boards": test, "max_tilt_deg": 0.5},
+            "scene": {"target": "metal", "images": 4,
+                      "distance_mm": [round(z_scene[0], 3), round(z_scene[1], 3)],
+                      "max_tilt_deg": 15.0, "centre_deg": centre_deg(z_scene[0]),
+                      "max_offset_mm": round(0.1 * mark_scale * 5.5, 4)},
+            "charuco": {"target": "charuco", "images": 4,
+                        "distance_mm": [round(near, 3), round(charuco_far, 3)],
+                        "max_tilt_deg": 30.0, "max_roll_deg": 20.0,
+                        "max_offset_mm": round(0.2 * near, 3), "min_corners_per_half": 30},
+        },
+        "_working_range_mm": [near, far],
+        "_baseline_mm": baseline,
+        "_best_focus_mm": float(np.sqrt(near * far) * _u(rng, (0.7, 0.9))),
+    }  # fmt: skip
+
+
+def _render_settings(width: int, height: int) -> dict[str, int]:
+    """Supersampling falls with the pixel count so a render's rays stay within a budget."""
+    pixels = width * height
+    n = 4 if pixels <= 640 * 512 else 3 if pixels <= 1024 * 768 else 2
+    return {"supersampling": n, "chunk_rays": 262144}
+
+
+def _draw_once(seed: int, attempt: int) -> dict[str, Any]:
+    """One draw of a whole design; :class:`DesignError` if it is not physical."""
+    rng = np.random.default_rng([int(seed), int(attempt), 0x64657369])
+    sensor = _sensor(rng)
+    width, height = sensor["image_size"]
+    lens = _lens(rng, width, height)
+    prism = _prism(rng, lens, width, height)
+    drawn = {k[1:]: lens.pop(k) for k in [k for k in lens if k.startswith("_")]}
+    data: dict[str, Any] = {
+        "format": PRESET_FORMAT,
+        "version": PRESET_VERSION,
+        "name": f"random-{int(seed)}",
+        "sensor": sensor,
+        "lens": {**lens, "best_focus_mm": 1.0},
+        "prism": prism,
+    }
+    try:
+        optics = Preset(data).truth_optics
+    except ValueError as exc:  # the apex does not image in the middle row, or worse
+        raise DesignError(str(exc)) from None
+    _check_optics(optics)
+    protocol = _protocol(rng, optics, prism["apex_mm"][2])
+    data["lens"]["best_focus_mm"] = round(protocol.pop("_best_focus_mm"), 3)
+    drawn["working_range_mm"] = [round(v, 3) for v in protocol.pop("_working_range_mm")]
+    drawn["baseline_mm"] = round(protocol.pop("_baseline_mm"), 4)
+    drawn["wedge_deg"] = [-prism["left_face"]["a_deg"], prism["right_face"]["a_deg"]]
+    data.update(protocol)
+    data["render"] = _render_settings(width, height)
+    data["design"] = {
+        "seed": int(seed),
+        "attempt": int(attempt),
+        "ranges_version": DESIGN_RANGES_VERSION,
+        "drawn": drawn,
+        "split": optics.config.split,
+    }
+    data["description"] = (
+        f"random design {seed}: {width}x{height} sensor, {drawn['full_field_deg']:.0f} deg lens "
+        f"field, {drawn['corner_distortion']:.0%} corner distortion "
+        f"({lens['distortion_direction']}), {prism['glass']} biprism, working range "
+        f"{drawn['working_range_mm'][0]:.1f}-{drawn['working_range_mm'][1]:.1f} mm "
+        "(docs/simulator.md, Design space)"
+    )
+    return data
+
+
+def draw_design(seed: int) -> dict[str, Any]:
+    """A complete preset document of a plausible biprism probe, a pure function of the seed.
+
+    Parameters
+    ----------
+    seed : int
+        Non-negative design seed.
+
+    Returns
+    -------
+    dict
+        A preset document (``Preset.from_dict`` reads it) with a ``design`` section: the
+        seed, the sub-seed attempt that gave a physical design, the ranges' version and
+        the drawn values that the preset does not state directly.
+
+    Raises
+    ------
+    ValueError
+        A negative seed, or no physical design within ``MAX_ATTEMPTS`` sub-seeds.
+    """
+    if int(seed) < 0:
+        raise ValueError(f"design seed must be non-negative, not {seed}")
+    reasons: list[str] = []
+    for attempt in range(MAX_ATTEMPTS):
+        try:
+            return copy.deepcopy(_draw_once(int(seed), attempt))
+        except DesignError as exc:
+            reasons.append(str(exc))
+    raise ValueError(f"no physical design for seed {seed}; last reasons: {reasons[-3:]}")
