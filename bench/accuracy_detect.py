@@ -156,10 +156,11 @@ def calibration_section(report: dict, floor: float, checks: Report) -> str:
     for name, m in report["models"].items():
         rows.append(
             f"| {name} | {m['rms_px']:.4f} | {m['rms_px'] / floor:.2f} | {m['n_corners']} "
-            f"| {m['n_outliers']} |"
+            f"| {m['n_outliers']} | {m['noise_floor_px']:.4f} | {m['rms_ratio']:.2f} "
+            f"| {m['verdict']} |"
         )
     for name, why in report.get("refused", {}).items():
-        rows.append(f"| {name} | refused: {why} | | | |")
+        rows.append(f"| {name} | refused: {why} | | | | | | |")
     ray = report["models"].get("raytrace", {})
     check = checks.check(RESIDUAL_TARGET, ray.get("rms_px", float("nan")) / floor, CALIBRATION)
     prows = [
@@ -175,9 +176,17 @@ of the noisy sample calibration set (36 images, three boards). The noise floor i
 RMS of detected minus true corner pixels of the same images ({floor:.4f} px, section
 above); RMS figures are of the 2-D residual per corner, inliers only.
 
-| model | residual RMS px | ratio to the floor | corners | outliers dropped |
-|---|---:|---:|---:|---:|
+| model | residual RMS px | ratio to the floor | corners | outliers dropped | formal floor px | RMS / formal floor | verdict |
+|---|---:|---:|---:|---:|---:|---:|---|
 {chr(10).join(rows)}
+
+The verdict (`solvers/verdict.py`) cannot know the truth: it compares the RMS with the
+formal floor, the RMS a correct model would leave if the detector's only error were the
+pixel noise its formal covariance describes (`features/precision.py`). The true floor is
+larger by the detector's deterministic error on these renders (the noise-free rows of
+the section above), so a model at the true floor shows a ratio above 1 against the
+formal one; the verdict's ok band (up to 1.5) allows for it, its failure limit (2)
+does not depend on it.
 
 Target (issue 6): raytrace at most 1.1 x the floor; this run: {check}. The pinhole pair
 cannot follow the prism's non-central, anamorphic mapping; its residual and the outliers
