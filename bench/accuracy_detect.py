@@ -149,6 +149,12 @@ Targets (issue 5): <= 0.05 px RMS noise-free, <= 0.1 px RMS with noise, every id
     return report.finish(sections)
 
 
+TABLE_HEAD = (
+    "| model | residual RMS px | ratio to the floor | corners | outliers dropped "
+    "| formal floor px | RMS / formal floor | verdict |\n|---|---:|---:|---:|---:|---:|---:|---|"
+)
+
+
 def calibration_section(report: dict, floor: float, checks: Report) -> str:
     truth = load_manifest(SAMPLES)["truth_model"]
     truth = dict(zip(truth["param_names"], truth["params"], strict=True))
@@ -176,8 +182,7 @@ of the noisy sample calibration set (36 images, three boards). The noise floor i
 RMS of detected minus true corner pixels of the same images ({floor:.4f} px, section
 above); RMS figures are of the 2-D residual per corner, inliers only.
 
-| model | residual RMS px | ratio to the floor | corners | outliers dropped | formal floor px | RMS / formal floor | verdict |
-|---|---:|---:|---:|---:|---:|---:|---|
+{TABLE_HEAD}
 {chr(10).join(rows)}
 
 The verdict (`solvers/verdict.py`) cannot know the truth: it compares the RMS with the
