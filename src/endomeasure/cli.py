@@ -484,7 +484,11 @@ def simulate(
         Path, typer.Argument(help="Output folder (created if missing).", show_default=False)
     ],
     preset: Annotated[
-        str, typer.Option("--preset", help="Built-in preset name or a preset JSON file.")
+        str,
+        typer.Option(
+            "--preset",
+            help="Built-in preset name, a preset JSON file, or 'random' (with --design-seed).",
+        ),
     ] = "default",
     sets: Annotated[
         str,
@@ -496,6 +500,14 @@ def simulate(
     noise_free: Annotated[
         bool, typer.Option("--noise-free", help="Render without shot and read noise.")
     ] = False,
+    design_seed: Annotated[
+        int | None,
+        typer.Option(
+            "--design-seed",
+            help="With --preset random: the seed of the probe design drawn (>= 0).",
+            show_default=False,
+        ),
+    ] = None,
     json_output: JsonOption = False,
 ) -> None:
     """Render prism-stereo image sets with exact ground truth (the digital twin)."""
@@ -509,6 +521,7 @@ def simulate(
             parse_sets(sets),
             seed=seed,
             noise_free=noise_free,
+            design_seed=design_seed,
             on_progress=(
                 None if on_progress is None else lambda done, total, _: on_progress(done, total)
             ),

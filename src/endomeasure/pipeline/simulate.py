@@ -3,6 +3,7 @@
 Output layout (documented in ``docs/simulator.md``)::
 
     OUT_DIR/simulation.json          manifest: preset, truth optics, seed, image list
+    OUT_DIR/preset.json              the preset rendered (with --preset random: the drawn design)
     OUT_DIR/calib/calib_000.png      8-bit grey image, both halves side by side
     OUT_DIR/calib/calib_000.json     its ground truth
     OUT_DIR/test/...  OUT_DIR/scene/...  OUT_DIR/charuco/...
@@ -30,6 +31,8 @@ __all__ = ["SimulationReport", "simulate", "checked_sets", "MANIFEST_NAME", "MAN
 
 MANIFEST_FORMAT = "endomeasure-simulation"
 MANIFEST_VERSION = 1
+PRESET_FILE = "preset.json"
+RANDOM_PRESET = "random"
 _PNG_COMPRESSION = 9  # smallest files; PNG is lossless, so this changes nothing but size
 
 
@@ -43,6 +46,8 @@ class SimulationReport:
     preset : str
     seed : int
     noise_free : bool
+    design_seed : int or None
+        The design seed of a ``random`` preset (None for a named or file preset).
     split : int
         First column of the right half in the rendered images.
     sets : dict
@@ -56,6 +61,7 @@ class SimulationReport:
     preset: str
     seed: int
     noise_free: bool
+    design_seed: int | None
     split: int
     sets: dict[str, dict[str, Any]] = field(default_factory=dict)
     seconds: float = 0.0
@@ -76,6 +82,30 @@ def checked_sets(names: Iterable[str]) -> list[str]:
             hint=f"use a comma-separated list of {', '.join(SET_NAMES)}",
         )
     return [s for s in SET_NAMES if s in names]
+
+
+def _load(preset, design_seed: int | None):
+    """The preset to render: a named or file preset, or the random design of a seed."""
+    from endomeasure.simulate.preset import Preset, load_preset
+
+    if str(preset) != RANDOM_PRESET:
+        if design_seed is not None:
+            raise BadInputError(
+                "--design-seed only applies to --preset random", hint="drop one of the two"
+            )
+        return load_preset(preset)
+    if design_seed is None or int(design_seed) < 0:
+        raise BadInputError(
+            "--preset random needs a non-negative --design-seed",
+            hint="e.g. endomeasure simulate OUT --preset random --design-seed 1",
+        )
+    from endomeasure.simulate.design import draw_design
+
+    try:
+        data = draw_design(int(design_seed))
+    except ValueError as exc:
+        raise BadInputError(f"cannot draw design {design_seed}: {exc}") from None
+    return Preset.from_dict(data, source=f"random:design-seed={int(design_seed)}")
 
 
 def _noise_rng(seed: int, set_name: str, index: int):
@@ -140,6 +170,21 @@ def _kept_sets(manifest_path: Path, rendered: dict, loaded, seed: int, noise_fre
     return kept if same_run else {}
 
 
+def _truth_entries(loaded) -> dict[str, Any]:
+    """The manifest's truth-optics fields: what the simulator traced, and the nearest
+    ``raytrace`` model (exact only when the design is representable in that family)."""
+    exact = loaded.raytrace_representable
+    return {
+        "truth_optics": {
+            "code": "endomeasure.simulate.truth_optics",
+            "note": "the simulator's own tracer; truth_model is a raytrace document, not it",
+            "raytrace_representable": bool(exact),
+        },
+        "truth_model": loaded.truth_model.to_dict(),
+        "truth_model_kind": "exact" if exact else "approximate-seed",
+    }
+
+
 def _write_manifest(manifest_path: Path, loaded, manifest_sets: dict, seed, noise_free) -> None:
     from endomeasure.simulate.preset import data_digest
 
@@ -155,7 +200,8 @@ def _write_manifest(manifest_path: Path, loaded, manifest_sets: dict, seed, nois
         "preset": {"name": loaded.name, "source": loaded.source, "sha256": data_digest(recorded)},
         "image_size": list(loaded.image_size),
         "split": loaded.split,
-        "truth_model": loaded.truth_model.to_dict(),
+        **_truth_entries(loaded),
+        **({"design": loaded.data["design"]} if "design" in loaded.data else {}),
         "sets": {k: manifest_sets[k] for k in sorted(manifest_sets)},
         "preset_data": recorded,
     }
@@ -170,6 +216,7 @@ def simulate(
     sets: Iterable[str] = ("calib", "test", "scene"),
     seed: int = 0,
     noise_free: bool = False,
+    design_seed: int | None = None,
     on_progress: Callable[[int, int, str], None] | None = None,
 ) -> SimulationReport:
     """Render the requested image sets of a preset with their ground truth.
@@ -179,7 +226,8 @@ def simulate(
     out_dir : path-like
         Created if missing; earlier renders of the same sets in it are replaced.
     preset : str or path-like
-        A built-in preset name or a preset JSON file.
+        A built-in preset name, a preset JSON file, or ``random``: the probe
+        :func:`~endomeasure.simulate.design.draw_design` draws for ``design_seed``.
     sets : iterable of str
         Any of ``calib``, ``test``, ``scene``, ``charuco`` (the ChArUco set is not
         rendered by default); a single name is one set.
@@ -187,6 +235,8 @@ def simulate(
         Non-negative; the same seed gives the same images, byte for byte.
     noise_free : bool
         Render without shot and read noise (still 8-bit).
+    design_seed : int, optional
+        Non-negative; required with ``preset='random'`` and only allowed with it.
     on_progress : callable(done, total, name), optional
         Called after each image is written.
 
@@ -197,16 +247,16 @@ def simulate(
     Raises
     ------
     BadInputError
-        Unknown preset or set, negative seed, or an output folder that cannot be written.
+        Unknown preset or set, negative seed, a design seed without ``random`` (or the
+        reverse), or an output folder that cannot be written.
     """
-    from endomeasure.simulate.preset import load_preset
     from endomeasure.simulate.scenes import plan_set
 
     start = time.perf_counter()
     if int(seed) < 0:
         raise BadInputError(f"seed must be a non-negative integer, not {seed}")
     set_names = checked_sets(sets)
-    loaded = load_preset(preset)
+    loaded = _load(preset, design_seed)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise BadInputError("the output path exists and is not a folder", path=str(out))
@@ -239,6 +289,7 @@ def simulate(
                 "fully_visible": fully if name != "scene" else None,
                 "files": [e["image"] for e in entries],
             }
+        (out / PRESET_FILE).write_text(json.dumps(loaded.data, indent=1) + "\n")
         manifest_path = out / MANIFEST_NAME
         manifest_sets.update(_kept_sets(manifest_path, manifest_sets, loaded, seed, noise_free))
         _write_manifest(manifest_path, loaded, manifest_sets, seed, noise_free)
@@ -253,6 +304,7 @@ def simulate(
         preset=loaded.name,
         seed=int(seed),
         noise_free=bool(noise_free),
+        design_seed=None if design_seed is None else int(design_seed),
         split=loaded.split,
         sets=report_sets,
         seconds=time.perf_counter() - start,

@@ -21,7 +21,7 @@ import numpy as np
 
 from endomeasure.conventions import Half, Status
 from endomeasure.simulate.preset import PRESET_FORMAT, PRESET_VERSION, Preset
-from endomeasure.simulate.truth_optics import TruthOptics
+from endomeasure.simulate.truth_optics import LensMap, TruthOptics
 
 __all__ = [
     "DESIGN_RANGES_VERSION",
@@ -151,12 +151,17 @@ def _lens(rng, width: int, height: int) -> dict[str, Any]:
         rd_corner = r_corner * (1 - big_d)
         k = -big_d * w / r_corner ** (2 * powers)
         theta_corner = np.arctan(r_corner)
+        reach = r_corner  # the input radius of the map at the corner
     else:
         # r = r_d (1 + D' sum w_i rho_d^2i), D' = D / (1 - D): r_d / r = 1 - D at the corner
         dp = big_d / (1.0 - big_d)
         rd_corner = np.tan(half_h) / (a * (1.0 + dp * (w @ a ** (2 * powers))))
         k = dp * w / rd_corner ** (2 * powers)
         theta_corner = np.arctan(rd_corner * (1.0 + dp))
+        reach = rd_corner
+    # the lens map must be one-to-one a little beyond the corner (its input radius there)
+    if LensMap(tuple(float(v) for v in k), 0.0, 0.0).max_radius < 1.05 * reach:
+        raise DesignError("the drawn distortion folds inside the image")
     fx = float(np.hypot(width / 2.0, height / 2.0) / rd_corner)
     off = min(RANGES["principal_offset_fraction"] * width, RANGES["principal_offset_max_px"])
     return {
@@ -210,6 +215,8 @@ def _prism(rng, lens: dict[str, Any], width: int, height: int) -> dict[str, Any]
     asym = RANGES["wedge_asymmetry_deg"]
     a_left = -(wedge + rng.uniform(-asym, asym))
     a_right = wedge + rng.uniform(-asym, asym)
+    if not (lo <= -a_left <= hi and lo <= a_right <= hi):
+        raise DesignError(f"a wedge ({-a_left:.1f}, {a_right:.1f} deg) is outside {lo}-{hi} deg")
     rear_d = _u(rng, RANGES["rear_distance_mm"])
     apex_z = rear_d + _u(rng, RANGES["thickness_mm"])
     apex_x = rng.uniform(-1, 1) * RANGES["apex_offset_fraction"] * width / lens["fx"] * apex_z
@@ -261,27 +268,50 @@ def _check_optics(optics: TruthOptics) -> None:
         raise DesignError("the apex band leaves the middle 60 % of the image width")
 
 
-def _footprints(optics: TruthOptics, z: float, points: np.ndarray, margin_px: float):
-    """Whether each point (N, 2) of the plane at depth z is seen in both halves, clear of
-    the border and of the apex image by ``margin_px``: each half's pixel grid is traced
-    to the plane and the pixel of a point interpolated linearly (Delaunay)."""
-    from scipy.interpolate import LinearNDInterpolator
+_APEX_ROWS = 9  # rows at which the apex image is solved for the common field
 
+
+def _apex(optics: TruthOptics) -> np.ndarray:
+    """The apex image's column at ``_APEX_ROWS`` rows, computed once per optics object."""
+    key = id(optics)
+    if _APEX_MEMO.get(key, (None,))[0] is not optics:
+        _APEX_MEMO.clear()
+        rows = np.linspace(0, optics.config.image_size[1] - 1, _APEX_ROWS)
+        _APEX_MEMO[key] = (optics, optics.apex_columns(rows))
+    return _APEX_MEMO[key][1]
+
+
+_APEX_MEMO: dict[int, tuple] = {}
+
+
+def _half_maps(optics: TruthOptics, z: float):
+    """Per half: pixels of a grid over the half and where their rays meet the plane z."""
     width, height = optics.config.image_size
-    rows = np.linspace(0, height - 1, 9)
-    apex = optics.apex_columns(rows)
-    seen = np.ones(points.shape[0], dtype=bool)
+    out = []
     for half in Half:
         lo, hi = (
             (0, optics.config.split - 1) if half is Half.LEFT else (optics.config.split, width - 1)
         )
-        q = np.stack(np.meshgrid(np.linspace(lo, hi, 40), np.linspace(0, height - 1, 40)), -1)
+        q = np.stack(np.meshgrid(np.linspace(lo, hi, 28), np.linspace(0, height - 1, 28)), -1)
         q = q.reshape(-1, 2)
         r = optics.rays(q, half)
         ok = (r.status == Status.OK) & (r.directions[:, 2] > 0)
         s = (z - r.origins[ok, 2]) / r.directions[ok, 2]
-        xy = r.origins[ok, :2] + s[:, None] * r.directions[ok, :2]
-        uv = LinearNDInterpolator(xy, q[ok])(points)
+        out.append((half, q[ok], r.origins[ok, :2] + s[:, None] * r.directions[ok, :2]))
+    return out
+
+
+def _footprints(optics: TruthOptics, maps, points: np.ndarray, margin_px: float, apex):
+    """Whether each point (N, 2) of the plane is seen in both halves, clear of the border
+    and of the apex image by ``margin_px``: the pixel of a point is interpolated linearly
+    (Delaunay) from the half's grid traced to the plane (``maps``, :func:`_half_maps`)."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    width, height = optics.config.image_size
+    rows = np.linspace(0, height - 1, _APEX_ROWS)
+    seen = np.ones(points.shape[0], dtype=bool)
+    for half, q, xy in maps:
+        uv = LinearNDInterpolator(xy, q)(points)
         with np.errstate(invalid="ignore"):
             inside = (uv[:, 0] > margin_px) & (uv[:, 0] < width - 1 - margin_px)
             inside &= (uv[:, 1] > margin_px) & (uv[:, 1] < height - 1 - margin_px)
@@ -298,19 +328,25 @@ def common_field(optics: TruthOptics, z: float, margin_px: float = 4.0) -> dict[
     """The region of the plane at depth ``z`` (mm) both halves see, clear of the borders
     and of ``margin_px`` around the apex image: its centre, width and height along the
     lines through the centre, mm, and its scale (px per mm, the smaller of the halves)."""
-    reach = z * 3.0
-    xs = np.linspace(-reach, reach, 241)
-    gx, gy = np.meshgrid(xs, xs)
-    seen = _footprints(optics, z, np.stack([gx.ravel(), gy.ravel()], -1), margin_px)
+    maps = _half_maps(optics, z)
+    (_, _, a), (_, _, b) = maps
+    lo = np.maximum(a.min(axis=0), b.min(axis=0))
+    hi = np.minimum(a.max(axis=0), b.max(axis=0))
+    if not np.all(hi > lo):
+        raise DesignError(f"the halves see nothing in common at {z:.1f} mm")
+    xs = np.linspace(lo[0], hi[0], 81)
+    ys = np.linspace(lo[1], hi[1], 81)
+    gx, gy = np.meshgrid(xs, ys)
+    apex = _apex(optics)
+    seen = _footprints(optics, maps, np.stack([gx.ravel(), gy.ravel()], -1), margin_px, apex)
     seen = seen.reshape(gx.shape)
     if seen.sum() < 4:
         raise DesignError(f"the halves see nothing in common at {z:.1f} mm")
     iy, ix = np.nonzero(seen)
     cy, cx = int(np.round(np.median(iy))), int(np.round(np.median(ix)))
-    xc, yc = float(xs[cx]), float(xs[cy])
-    step = xs[1] - xs[0]
-    w = float(seen[cy].sum() * step)
-    h = float(seen[:, cx].sum() * step)
+    xc, yc = float(xs[cx]), float(ys[cy])
+    w = float(seen[cy].sum() * (xs[1] - xs[0]))
+    h = float(seen[:, cx].sum() * (ys[1] - ys[0]))
     probe = np.array([[xc - 0.5, yc, z], [xc + 0.5, yc, z], [xc, yc - 0.5, z], [xc, yc + 0.5, z]])
     scale = np.inf
     for half in Half:
@@ -383,7 +419,7 @@ def _boards(optics: TruthOptics, near: float, far: float):
     first fits to where its squares shrink to ``MIN_SQUARE_PX`` (within the working
     range); the ranges must overlap so that together they span the working range.
     """
-    zs = np.geomspace(near, far, 9)
+    zs = np.geomspace(near, far, 7)
     cfs = [common_field(optics, float(z)) for z in zs]
     focal = np.array([cf["px_per_mm"] * z for cf, z in zip(cfs, zs, strict=True)])
     # the small board: as many corners (up to the default's 8 x 6) as fit BOARD_FILL of

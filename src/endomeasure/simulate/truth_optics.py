@@ -37,6 +37,7 @@ __all__ = [
     "Plane",
     "TruthConfig",
     "TruthRays",
+    "TracePath",
     "TruthProjection",
     "TruthOptics",
     "refract_vectors",
@@ -62,6 +63,18 @@ class TruthRays(NamedTuple):
 
     origins: np.ndarray
     directions: np.ndarray
+    status: np.ndarray  # (N,) uint8 Status
+
+
+class TracePath(NamedTuple):
+    """The segments of a trace, each (N, 3): lens ray, inside the glass, object space."""
+
+    lens_origins: np.ndarray  # on the axis (the pupil point of each ray's field angle), mm
+    lens_directions: np.ndarray
+    rear_points: np.ndarray  # where the ray enters the glass, mm
+    glass_directions: np.ndarray
+    front_points: np.ndarray  # where it leaves through the half's front face, mm
+    out_directions: np.ndarray
     status: np.ndarray  # (N,) uint8 Status
 
 
@@ -290,12 +303,9 @@ class TruthOptics:
         return self.left if Half.parse(half) is Half.LEFT else self.right
 
     # ----- tracing -------------------------------------------------------------------
-    def trace(self, x: np.ndarray, y: np.ndarray, half: Half) -> TruthRays:
-        """Trace ideal lens coordinates (N,) through the rear face and the half's front face.
-
-        Returns object-space rays leaving the front face; ``BEHIND`` where a face is
-        missed, ``TOTAL_INTERNAL_REFLECTION`` where Snell's law has no solution.
-        """
+    def trace_path(self, x: np.ndarray, y: np.ndarray, half: Half) -> TracePath:
+        """Every segment of the trace of ideal lens coordinates (N,) through the rear face
+        and the half's front face (NaN where the status is not OK)."""
         x = np.asarray(x, dtype=np.float64).reshape(-1)
         y = np.asarray(y, dtype=np.float64).reshape(-1)
         status = np.full(x.size, Status.OK, dtype=STATUS_DTYPE)
@@ -314,9 +324,18 @@ class TruthOptics:
         status[(status == Status.OK) & ~np.isfinite(t1)] = Status.BEHIND
         status[(status == Status.OK) & tir2] = Status.TOTAL_INTERNAL_REFLECTION
         bad = status != Status.OK
-        p2[bad] = np.nan
-        out[bad] = np.nan
-        return TruthRays(p2, out, status)
+        for v in (p1, g, p2, out):
+            v[bad] = np.nan
+        return TracePath(o0, d0, p1, g, p2, out, status)
+
+    def trace(self, x: np.ndarray, y: np.ndarray, half: Half) -> TruthRays:
+        """Trace ideal lens coordinates (N,) through the rear face and the half's front face.
+
+        Returns object-space rays leaving the front face; ``BEHIND`` where a face is
+        missed, ``TOTAL_INTERNAL_REFLECTION`` where Snell's law has no solution.
+        """
+        path = self.trace_path(x, y, half)
+        return TruthRays(path.front_points, path.out_directions, path.status)
 
     def rays(self, pixels: np.ndarray, half: Half | str) -> TruthRays:
         """Backward: the object-space ray each full-image pixel (N, 2) of a half sees."""
