@@ -16,7 +16,7 @@ from endomeasure.geometry.rotations import rotation_matrix, rotation_vector
 from endomeasure.models.pinhole import PinholeModel
 from endomeasure.models.start import Observations, Start, StartContext
 
-__all__ = ["initial_pinhole"]
+__all__ = ["initial_pinhole", "mean_rotation"]
 
 _HINT = "check that the boards are tilted and at several distances"
 
@@ -65,7 +65,7 @@ def _calibrate_half(obs: Observations, half: Half, image_size, split):
     return intr, dict(zip(images, zip(rv, tv, strict=True), strict=True))
 
 
-def _mean_rotation(Rs: np.ndarray) -> np.ndarray:
+def mean_rotation(Rs: np.ndarray) -> np.ndarray:
     """Chordal L2 mean of rotation matrices: the rotation nearest to their average."""
     U, _, Vt = np.linalg.svd(Rs.mean(axis=0))
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
@@ -91,7 +91,7 @@ def initial_pinhole(ctx: StartContext, base: None = None) -> Start:
     Rr = rotation_matrix(np.array([poses_r[i][0] for i in both]))
     tl = np.array([poses_l[i][1] for i in both])
     tr = np.array([poses_r[i][1] for i in both])
-    R_rl = _mean_rotation(Rr @ np.swapaxes(Rl, -1, -2))
+    R_rl = mean_rotation(Rr @ np.swapaxes(Rl, -1, -2))
     t_rl = np.median(tr - tl @ R_rl.T, axis=0)
     rvecs = np.zeros((obs.n_images, 3))
     tvecs = np.zeros((obs.n_images, 3))

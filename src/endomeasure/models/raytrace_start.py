@@ -13,26 +13,20 @@ import math
 
 import numpy as np
 
+from endomeasure.conventions import Half
 from endomeasure.errors import CalibrationError
 from endomeasure.geometry.rotations import rotation_matrix, rotation_vector
+from endomeasure.models.base import ParamBatch
 from endomeasure.models.pinhole import PinholeModel
-from endomeasure.models.raytrace import DEFAULT_GLASS_INDEX, RaytraceModel
-from endomeasure.models.start import Start, StartContext
+from endomeasure.models.raytrace import RaytraceModel, plane_normal
+from endomeasure.models.start import Observations, Start, StartContext
 
 __all__ = [
-    "raytrace_from_pinhole",
     "seed_raytrace",
     "prism_tilt_for_deviation",
-    "NOMINAL_PRISM_THICKNESS_RATIO",
+    "GLASS_CANDIDATES",
+    "REAR_FRACTIONS",
 ]
-
-NOMINAL_PRISM_THICKNESS_RATIO = 0.75
-"""Seed prism thickness (rear face to apex) as a fraction of the effective prism
-distance. Only a start value: the joint fit moves the faces; the value matters little
-because thickness and distance enter the projections almost only through the
-baseline they produce."""
-_MIN_PRISM_DISTANCE_MM = 0.3
-_MAX_PRISM_DISTANCE_MM = 20.0
 
 
 def _exit_angle(alpha: float, tilt: float, n: float) -> float:
@@ -91,79 +85,312 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return rotation_matrix(axis / s * angle)
 
 
-def raytrace_from_pinhole(
-    pinhole: PinholeModel, n_glass: float
+GLASS_CANDIDATES = (1.46, 1.62, 1.78, 1.94)
+"""Glass indices the start tries when the user gives none: spaced over the optical
+glasses of prisms, fused silica (1.458) to dense flints (about 1.95), closely enough
+that the fit of the nearest one reaches the basin of the true index."""
+REAR_FRACTIONS = (0.3, 0.75)
+"""Rear-face depths the start tries, as fractions of the nearest depth where an observed
+lens ray meets its front face: a prism most of whose depth is glass, and a thin one
+(physically the rear face must lie before every front-face hit; the fits move it)."""
+RANK_CORNERS_PER_HALF = 4
+MAX_RANKED = 3
+RAY_COST_KEEP = 3.0
+"""Candidates whose backward-trace cost is within this factor of the best are ranked on
+the pixels: the pinhole pair's own model error limits that cost, so it cannot tell
+close candidates apart, but it rejects those that do not trace the field."""
+RAY_FIT_NFEV = 60
+PIXEL_CORNERS_PER_HALF = 8
+"""Corners per image and half on which the surviving candidates are refined with every
+board pose and ranked by pixel cost: every view at a fraction of the full fit's cost,
+which then starts near its optimum (continuation from few corners to all)."""
+"""Corners per image and half with which the candidate starts are ranked (spread over
+the half's corners): a ray fit on a few hundred corners ranks as well as on all."""
+
+
+def _plane_fit(pinhole: PinholeModel, obs: Observations, n: float, cx: float, fx: float):
+    """Lens axis turn ``psi``, front-face tilts and mean deviations of both halves
+    (x-z plane, rad), and the lens ray angles of each half's observed columns.
+
+    The rays of a row of pixels through each half's observed columns, seen by the
+    virtual cameras, are matched by the 2-D Snell trace (:func:`_exit_angle`) of the
+    same pixels' lens rays, in a frame whose z is the bisector of the virtual axes;
+    ``psi`` turns the lens axis about y away from that bisector.
+    """
+    from scipy.optimize import least_squares
+
+    R_rl, _ = pinhole.pose_right_left()
+    bis = np.array([0.0, 0.0, 1.0]) + R_rl.T @ np.array([0.0, 0.0, 1.0])
+    R0 = _rotation_between(bis / np.linalg.norm(bis), np.array([0.0, 0.0, 1.0]))
+    cy = 0.5 * (pinhole.left_cy + pinhole.right_cy)
+    alphas, betas, halves = [], [], []
+    for half in Half:
+        u_obs = obs.pixels[obs.half == half, 0]
+        if u_obs.size < 2:
+            continue
+        u = np.linspace(*np.percentile(u_obs, [5, 95]), 15)
+        d = pinhole.rays(np.stack([u, np.full_like(u, cy)], -1), half).directions @ R0.T
+        ok = np.all(np.isfinite(d), axis=-1)
+        alphas.append(np.arctan((u[ok] - cx) / fx))
+        betas.append(np.arctan2(d[ok, 0], d[ok, 2]))
+        halves.append(np.full(int(ok.sum()), int(half)))
+    alpha, beta, half = (np.concatenate(a) for a in (alphas, betas, halves))
+    mean_dev = [float(np.mean(beta[half == h] - alpha[half == h])) if np.any(half == h)
+                else 0.0 for h in (0, 1)]  # fmt: skip
+
+    def residuals(x):
+        psi, tilts = x[0], x[1:]
+        out = np.array([_exit_angle(a, tilts[h], n) for a, h in zip(alpha, half, strict=True)])
+        return np.nan_to_num(out + psi - beta, nan=1.0)
+
+    x0 = np.array([0.0, *(-dev / (n - 1.0) for dev in mean_dev)])
+    fit = least_squares(residuals, x0, method="lm", xtol=1e-10)
+    psi, tilts = float(fit.x[0]), fit.x[1:]
+    devs = [float(np.mean(beta[half == h] - psi - alpha[half == h])) if np.any(half == h)
+            else 0.0 for h in (0, 1)]  # fmt: skip
+    edges = [alpha[half == h] for h in (0, 1)]
+    return R0, psi, tilts, devs, edges
+
+
+def _analytic_start(
+    pinhole: PinholeModel, obs: Observations, n: float, cx: float, rear_fraction: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Analytic ``raytrace`` parameters and the lens frame from a ``pinhole`` pair.
-
-    Parameters
-    ----------
-    pinhole : PinholeModel
-    n_glass : float
-
-    Returns
-    -------
-    params : ndarray, shape (19,)
-        ``raytrace`` parameters in ``RaytraceModel.PARAM_NAMES`` order.
-    R_rt_left, t_rt_left : ndarray, shapes (3, 3), (3,)
-        ``T_raytrace_left``: maps the pinhole (left virtual camera) frame into the lens
-        frame.
+    """``raytrace`` parameters and ``T_raytrace_left`` (R, t) of one candidate.
 
     Notes
     -----
-    Assumes a biprism symmetric about the lens axis:
-
-    - the lens axis bisects the two virtual optical axes, and the lens centre is the
-      midpoint of the two virtual centres;
-    - ``fx, fy`` are the mean virtual focal lengths, ``cy`` the mean virtual ``cy``,
-      ``cx`` the split (the apex edge lies on the axis), no distortion;
-    - the pixel ``cx`` of a virtual camera sees, through the lens, the direction
-      ``alpha = atan((cx_v - cx) / fx)``; through the prism it must leave along the
-      virtual axis, at ``beta = -+ phi / 2`` (``phi`` the angle between the virtual axes),
-      so the front face tilt follows from the deviation ``beta - alpha``
-      (:func:`prism_tilt_for_deviation`), the rear face perpendicular to the axis;
-    - a thin prism at distance ``z`` shifts a virtual centre sideways by about
-      ``z tan(delta)``, so ``z ~ baseline / |tan delta_L - tan delta_R|`` places the
-      prism; the rear face and the apex sit at ``z -+ thickness / 2``.
+    ``fx = fy`` (square pixels; a prism magnifies only across its wedge, so ``fy`` is
+    the virtual cameras'); the lens axis and the front-face tilts from the 2-D fit
+    :func:`_plane_fit`, the rear face perpendicular to the axis; the lens centre midway
+    between the virtual centres; the apex ``z`` from the virtual centres' spread (a
+    prism at ``z`` shifts a virtual centre by about ``z tan(delta)``) and on the ray of
+    the split column, so that it images there; the rear face at ``rear_fraction`` of the
+    nearest depth where an observed lens ray meets its front face (the glass must lie
+    between the faces over the whole field).
     """
     names = RaytraceModel.PARAM_NAMES
     split = pinhole.config.split
-    R_rl, t_rl = pinhole.pose_right_left()
-    axis_l = np.array([0.0, 0.0, 1.0])
-    axis_r = R_rl.T @ axis_l  # right virtual axis in the left frame
-    centre_r = -R_rl.T @ t_rl
-    bisector = axis_l + axis_r
-    bisector /= np.linalg.norm(bisector)
-    R_left_rt = _rotation_between(np.array([0.0, 0.0, 1.0]), bisector)
-    R_rt_left = R_left_rt.T
-    lens_centre_left = 0.5 * centre_r  # midpoint of the virtual centres, left frame
-    t_rt_left = -R_rt_left @ lens_centre_left
-    # virtual axes in the lens frame, as angles in the x-z plane
-    a_l, a_r = R_rt_left @ axis_l, R_rt_left @ axis_r
-    beta_l = math.atan2(a_l[0], a_l[2])
-    beta_r = math.atan2(a_r[0], a_r[2])
-    fx = 0.5 * (pinhole.left_fx + pinhole.right_fx)
     fy = 0.5 * (pinhole.left_fy + pinhole.right_fy)
-    cx = split - 0.5
+    fx = fy
     cy = 0.5 * (pinhole.left_cy + pinhole.right_cy)
-    alpha_l = math.atan((pinhole.left_cx - cx) / fx)
-    alpha_r = math.atan((pinhole.right_cx - cx) / fx)
-    tilt_l = prism_tilt_for_deviation(alpha_l, beta_l, n_glass)
-    tilt_r = prism_tilt_for_deviation(alpha_r, beta_r, n_glass)
-    spread = abs(math.tan(beta_l - alpha_l) - math.tan(beta_r - alpha_r))
+    R0, psi, tilts, devs, edges = _plane_fit(pinhole, obs, n, cx, fx)
+    R_rt_left = rotation_matrix(np.array([0.0, -psi, 0.0])) @ R0
+    R_rl, t_rl = pinhole.pose_right_left()
+    centre_r = -R_rl.T @ t_rl
+    lens_centre_left = 0.5 * centre_r
+    t_rt_left = -R_rt_left @ lens_centre_left
+    alpha_s = math.atan((split - 0.5 - cx) / fx)
+    spread = abs(math.tan(devs[0]) - math.tan(devs[1]))
     baseline = float(np.linalg.norm(centre_r))
-    z = baseline / spread if spread > 1e-6 else 2.0
-    z = min(max(z, _MIN_PRISM_DISTANCE_MM), _MAX_PRISM_DISTANCE_MM)
-    half_thick = 0.5 * NOMINAL_PRISM_THICKNESS_RATIO * z
-    rear, apex = z - half_thick, z + half_thick
+    z = baseline / spread if spread > 1e-6 and math.isfinite(spread) else 10.0 * baseline
+    apex = np.array([z * math.tan(alpha_s), 0.0, z])
+    faces = {side: plane_normal(t, 0.0) for side, t in zip(("left", "right"), tilts, strict=True)}
+    # depth where each observed lens ray (tan a, 0, 1) meets its half's front face
+    hits = [(faces[side] @ apex) / (faces[side] @ np.stack([np.tan(a), 0 * a, 1 + 0 * a]))
+            for side, a in zip(("left", "right"), edges, strict=True) if a.size]  # fmt: skip
+    z_glass = float(np.min(np.concatenate(hits)))
+    if not (z_glass > 0 and math.isfinite(z_glass)):
+        raise ValueError("the front faces do not lie in front of the lens")
     values = dict(
         fx=fx, fy=fy, cx=cx, cy=cy, k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0,
-        rear_a=0.0, rear_b=0.0, rear_d=rear,
-        left_a=tilt_l, left_b=0.0, left_d=apex * math.cos(tilt_l),
-        right_a=tilt_r, right_b=0.0, right_d=apex * math.cos(tilt_r),
-        n_glass=n_glass,
+        rear_a=0.0, rear_b=0.0, rear_d=rear_fraction * z_glass,
+        left_a=tilts[0], left_b=0.0, left_d=float(faces["left"] @ apex),
+        right_a=tilts[1], right_b=0.0, right_d=float(faces["right"] @ apex),
+        n_glass=n,
     )  # fmt: skip
     return np.array([values[k] for k in names]), R_rt_left, t_rt_left
+
+
+def _ray_fit(model: RaytraceModel, R: np.ndarray, t: np.ndarray, obs: Observations,
+             points: np.ndarray, max_nfev: int):  # fmt: skip
+    """Fit the free parameters and ``T_raytrace_left`` so that each corner's pixel sees
+    its pinhole-placed point ``points`` (M, 3, left frame): backward traces only.
+
+    The residual is the point's offset from the pixel's traced ray, as an angle times
+    ``fx`` (about pixels), three components per corner. The Jacobian traces all the
+    parameter steps in one batched call (``rays`` with a parameter vector per pixel);
+    the pose enters only through the points. Returns (model, R, t, rms px).
+    """
+    from scipy.optimize import least_squares
+
+    free = np.flatnonzero(model.free_mask)
+    F = free.size
+    halves = [(half, np.flatnonzero(obs.half == half)) for half in Half]
+    base = model.params.copy()
+    M = obs.image.size
+
+    def unpack(x):
+        p = base.copy()
+        p[free] = x[:F]
+        return p, x[F : F + 3], x[F + 3 :]
+
+    def trace(table):
+        """Origins and directions (K, M, 3) of every corner's pixel under K vectors."""
+        K = table.shape[0]
+        tracer = model.with_params(table[0])  # a one-row batch traces the model's own faces
+        o = np.full((K, M, 3), np.nan)
+        d = np.full((K, M, 3), np.nan)
+        for half, idx in halves:
+            if idx.size == 0:
+                continue
+            batch = ParamBatch(table, np.repeat(np.arange(K), idx.size))
+            rays = tracer.rays(np.tile(obs.pixels[idx], (K, 1)), half, batch)
+            o[:, idx] = rays.origins.reshape(K, idx.size, 3)
+            d[:, idx] = rays.directions.reshape(K, idx.size, 3)
+        return o, d
+
+    def offsets(o, d, rv, tv, fx):
+        P = points @ rotation_matrix(rv).T + tv
+        e = P - o
+        along = np.einsum("...j,...j->...", e, d)
+        r = (e - along[..., None] * d) / along[..., None] * np.asarray(fx)[..., None, None]
+        bad = ~(np.all(np.isfinite(r), axis=-1) & (along > 0))
+        return np.where(bad[..., None], _FAILED_RAY_PX, r)
+
+    def residuals(x):
+        p, rv, tv = unpack(x)
+        if not model.valid_params(p):
+            return np.full(3 * M, _FAILED_RAY_PX)
+        o, d = trace(p[None])
+        return offsets(o[0], d[0], rv, tv, p[0]).reshape(-1)
+
+    def jacobian(x):
+        p, rv, tv = unpack(x)
+        steps = _FD_STEP * np.maximum(np.abs(p[free]), 1.0)
+        table = np.repeat(p[None], F + 1, axis=0)
+        table[np.arange(1, F + 1), free] += steps
+        o, d = trace(table)
+        r = offsets(o, d, rv, tv, table[:, 0])
+        J = np.empty((3 * M, x.size))
+        lost = r[1:] == _FAILED_RAY_PX  # a corner lost by a step: no derivative there
+        J[:, :F] = np.where(lost, 0.0, (r[1:] - r[0]) / steps[:, None, None]).reshape(F, -1).T
+        for k in range(6):
+            h = np.zeros(6)
+            h[k] = _FD_STEP
+            J[:, F + k] = ((offsets(o[0], d[0], rv + h[:3], tv + h[3:], p[0]) - r[0])
+                           / _FD_STEP).reshape(-1)  # fmt: skip
+        J[~np.isfinite(J)] = 0.0
+        failed = np.repeat(np.any(r[0] == _FAILED_RAY_PX, axis=-1), 3)
+        J[failed] = 0.0
+        return J
+
+    lower = np.full(F + 6, -np.inf)
+    for k, i in enumerate(free):
+        lower[k] = _LOWER.get(model.PARAM_NAMES[i], -np.inf)
+    x0 = np.concatenate([np.maximum(base[free], lower[:F] + 1e-9), rotation_vector(R), t])
+    fit = least_squares(residuals, x0, jac=jacobian, method="trf", x_scale="jac",
+                        max_nfev=max_nfev, bounds=(lower, np.inf))  # fmt: skip
+    p, rv, tv = unpack(fit.x)
+    if not model.valid_params(p):
+        return model, R, t, math.inf
+    rms = float(np.sqrt(np.mean(np.sum(fit.fun.reshape(-1, 3) ** 2, axis=-1))))
+    return model.with_params(p), rotation_matrix(rv), tv, rms
+
+
+_FD_STEP = 1e-6  # relative step of the ray fit's forward differences
+
+
+_LOWER = {"fx": 1.0, "fy": 1.0, "rear_d": 1e-3, "left_d": 1e-3, "right_d": 1e-3, "n_glass": 1.01}
+_FAILED_RAY_PX = 1e3 / math.sqrt(3.0)  # per component: a failed corner costs 1e3 px
+
+
+def _rank_rows(obs: Observations, per_half: int) -> np.ndarray:
+    """A few corners of every image and half, spread over each subset's order."""
+    rows = []
+    for i in range(obs.n_images):
+        for h in (0, 1):
+            sel = obs.subset(i, h)
+            if sel.size:
+                rows.append(sel[np.unique(np.linspace(0, sel.size - 1, per_half).round()
+                                          .astype(int))])  # fmt: skip
+    return np.sort(np.concatenate(rows))
+
+
+def _subset(obs: Observations, rows: np.ndarray) -> Observations:
+    import dataclasses
+
+    return dataclasses.replace(obs, image=obs.image[rows], half=obs.half[rows],
+                               ids=obs.ids[rows], board_points=obs.board_points[rows],
+                               pixels=obs.pixels[rows])  # fmt: skip
+
+
+def _candidates(ctx: StartContext, pinhole: PinholeModel):
+    """The analytic starts to try: every glass candidate (only the user's glass when
+    given) and rear-face depth, the lens axis on the split column (the apex on the axis:
+    the backward fit moves it, and a start on the sensor centre reaches the same fits)."""
+    glasses = (ctx.values["n_glass"],) if "n_glass" in ctx.values else GLASS_CANDIDATES
+    for n in glasses:
+        for fraction in REAR_FRACTIONS:
+            try:
+                yield _analytic_start(pinhole, ctx.obs, n, ctx.config.split - 0.5, fraction)
+            except (ValueError, np.linalg.LinAlgError):
+                continue
+
+
+def _searched(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
+    """The candidate start of least pixel cost (a ``Fit`` with a pose per image).
+
+    Every candidate is fitted by backward traces to a few corners of every view
+    (:func:`_ray_fit`, glass held); the distinct ones that trace (cost within a factor
+    of the best) are refined on the pixels of a few corners of every view with their
+    board poses (from ``T_raytrace_left T_left_board``) and the glass free unless the
+    user set it (``ctx.refine``), and ranked by that cost: the calibration's own, so
+    the glass and depth that fit best win.
+    """
+    obs = ctx.obs
+    R = rotation_matrix(rvecs)[obs.image]
+    P_left = np.einsum("nij,nj->ni", R, obs.board_points) + tvecs[obs.image]
+    fixed = frozenset(set(ctx.config.fixed) | {"n_glass"})
+    rows = _rank_rows(obs, RANK_CORNERS_PER_HALF)
+    sub, P_sub = _subset(obs, rows), P_left[rows]
+    tried = []
+    for params, R_t, t_t in _candidates(ctx, pinhole):
+        try:
+            model = RaytraceModel(params, ctx.config.with_fixed(fixed))
+        except ValueError:
+            continue
+        tried.append(_ray_fit(model, R_t, t_t, sub, P_sub, RAY_FIT_NFEV))
+    tried = [f for f in tried if math.isfinite(f[3])]
+    if not tried:
+        raise CalibrationError("no start of the raytrace model traces the corners")
+    tried.sort(key=lambda f: f[3])
+    keep = []
+    for f in tried:  # distinct outcomes only: many candidates reach the same fit
+        if f[3] <= RAY_COST_KEEP * tried[0][3] and not any(
+            abs(f[3] - k[3]) < 0.02 * k[3] and abs(f[0].n_glass - k[0].n_glass) < 0.01 for k in keep
+        ):
+            keep.append(f)
+    keep = keep[:MAX_RANKED]
+    _debug(f"ray fits: {[(round(f[0].n_glass, 2), round(f[0].cx), round(f[3], 2)) for f in tried]}")
+    views = _subset(obs, _rank_rows(obs, PIXEL_CORNERS_PER_HALF))
+    best = None
+    for model, R_t, t_t, _ in keep:
+        rv = rotation_vector(R_t @ rotation_matrix(rvecs))
+        tv = tvecs @ R_t.T + t_t
+        try:
+            fit = ctx.refine(model.with_config(fixed=_seeding_fixed(ctx)), views, rv, tv)
+        except CalibrationError:
+            continue
+        cost = _pixel_cost(fit, views)
+        _debug(
+            f"ranked n {model.n_glass:.2f} -> {fit.model.n_glass:.3f} cost {cost:.3f} "
+            f"nfev {fit.nfev} status {fit.status}"
+        )
+        if best is None or cost < best[0]:
+            best = (cost, fit)
+    if best is None:
+        raise CalibrationError("no start of the raytrace model converges on the pixels")
+    return best[1]
+
+
+def _pixel_cost(fit, obs: Observations) -> float:
+    """RMS pixel residual of a fit over its observations (a failed corner costs 1e3 px)."""
+    projector = fit.model.projector(obs.half, fit.state)
+    R = rotation_matrix(fit.rvecs)[obs.image]
+    P = np.einsum("nij,nj->ni", R, obs.board_points) + fit.tvecs[obs.image]
+    q, ok = projector.project(fit.model, P)
+    r = np.where(ok[:, None], q - obs.pixels, _FAILED_RAY_PX)
+    return float(np.sqrt(np.mean(np.sum(r * r, axis=-1))))
 
 
 def seed_raytrace(ctx: StartContext, base: Start) -> Start:
@@ -172,43 +399,78 @@ def seed_raytrace(ctx: StartContext, base: Start) -> Start:
     Parameters
     ----------
     ctx : StartContext
-        ``ctx.seed`` (a raytrace model with design values) replaces the analytic start;
-        ``ctx.values`` may set ``n_glass``.
+        ``ctx.seed`` (a raytrace model with design values) replaces the search;
+        ``ctx.values`` may set ``n_glass`` (then the only glass tried, and held).
     base : Start
         The refined pinhole pair with ``T_left_board`` per image.
 
     Returns
     -------
     Start
-        ``T_raytrace_board`` per image, and the projector state of the seeding fit.
+        ``T_raytrace_board`` per image.
 
     Notes
     -----
-    After the analytic start (:func:`raytrace_from_pinhole`, or the seed's values) all
-    corners are placed in the left virtual frame by the pinhole calibration, and the
-    free prism and lens parameters are fitted together with a single rigid transform
-    ``T_raytrace_left`` to their detected pixels: a small problem (F + 6 unknowns) that
-    moves the start into the basin of the joint fit, after which each board pose is
-    ``T_raytrace_left T_left_board``.
+    All corners are placed in the left virtual frame by the pinhole calibration. The
+    search (:func:`_searched`) picks a candidate (glass, rear-face depth) by the pixel
+    cost on a few corners of every view; a user's seed replaces the candidates. Each
+    board pose starts at ``T_raytrace_left T_left_board``; the fit on few corners
+    brings the start near the calibration's optimum, which the calibration's own fit on
+    all corners then reaches in few steps. No design data is needed.
     """
     pinhole, rvecs, tvecs = base.model, base.rvecs, base.tvecs
     if not isinstance(pinhole, PinholeModel):
         raise TypeError("the raytrace start needs a pinhole calibration")
-    n_glass = ctx.values.get("n_glass", DEFAULT_GLASS_INDEX)
-    params, R_t, t_t = raytrace_from_pinhole(pinhole, n_glass)
-    if ctx.seed is not None:
-        params = ctx.seed.params
-    try:
-        model = RaytraceModel(params, ctx.config).with_values(dict(ctx.values))
-    except ValueError as exc:
-        raise CalibrationError(f"cannot seed the raytrace model: {exc}") from None
+    if ctx.seed is None:
+        fit = _searched(ctx, pinhole, rvecs, tvecs)
+        origin = "a search from the pinhole pair"
+    else:
+        fit = _seeded(ctx, pinhole, rvecs, tvecs)
+        origin = "the seed model"
+    return Start(fit.model.with_config(fixed=ctx.config.fixed), fit.rvecs, fit.tvecs, origin)
+
+
+def _seeded(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
+    """The user's seed fitted to the pinhole-placed corners by backward traces, then on
+    the pixels of a few corners of every view (a ``Fit``)."""
     obs = ctx.obs
     R = rotation_matrix(rvecs)[obs.image]
     P_left = np.einsum("nij,nj->ni", R, obs.board_points) + tvecs[obs.image]
-    fit = ctx.refine(model, obs.as_one_board(P_left), rotation_vector(R_t)[None], t_t[None])
-    R_t = rotation_matrix(fit.rvecs[0])
-    t_t = fit.tvecs[0]
-    new_r = rotation_vector(R_t @ rotation_matrix(rvecs))
-    new_t = tvecs @ R_t.T + t_t
-    origin = "the seed model" if ctx.seed is not None else "the pinhole pair"
-    return Start(fit.model, new_r, new_t, origin, fit.state)
+    fixed = frozenset(set(ctx.config.fixed) | {"n_glass"})
+    try:
+        seeded = RaytraceModel(ctx.seed.params, ctx.config.with_fixed(fixed))
+        seeded = seeded.with_values(dict(ctx.values))
+    except ValueError as exc:
+        raise CalibrationError(f"cannot seed the raytrace model: {exc}") from None
+    model, R_t, t_t, _ = _ray_fit(seeded, *_seed_frame(seeded, pinhole), obs, P_left,
+                                  RAY_FIT_NFEV)  # fmt: skip
+    rv = rotation_vector(R_t @ rotation_matrix(rvecs))
+    tv = tvecs @ R_t.T + t_t
+    views = _subset(obs, _rank_rows(obs, PIXEL_CORNERS_PER_HALF))
+    return ctx.refine(model.with_config(fixed=_seeding_fixed(ctx)), views, rv, tv)
+
+
+def _seeding_fixed(ctx: StartContext) -> frozenset[str]:
+    """What the ranking's pixel fits hold: the configuration's fixed parameters, with
+    the glass freed unless the user gave it (the data determine it; see docs/models.md)."""
+    fixed = set(ctx.config.fixed)
+    if "n_glass" not in ctx.values:
+        fixed.discard("n_glass")
+    return frozenset(fixed)
+
+
+def _seed_frame(model: RaytraceModel, pinhole: PinholeModel):
+    """``T_raytrace_left`` for a user's seed: the lens centre midway between the virtual
+    centres, its axis on the bisector of the virtual axes."""
+    R_rl, t_rl = pinhole.pose_right_left()
+    bis = np.array([0.0, 0.0, 1.0]) + R_rl.T @ np.array([0.0, 0.0, 1.0])
+    R0 = _rotation_between(bis / np.linalg.norm(bis), np.array([0.0, 0.0, 1.0]))
+    return R0, -R0 @ (0.5 * (-R_rl.T @ t_rl))
+
+
+def _debug(text):
+    import os
+    import sys
+
+    if os.environ.get("EM_DEBUG"):
+        sys.stderr.write(text + "\n")

@@ -1,0 +1,87 @@
+"""Sweep of the raytrace calibration start over random probe designs.
+
+Usage::
+
+    python bench/start_designs.py [--seeds 1-40] [--noise 0.04] [--jobs 1] [--fixed-n]
+
+For each design seed (``tests/solvers/design_data.py``): corners of 3 boards x 12 poses
+projected by the design's truth with Gaussian noise, then ``calibrate('pinhole')`` and
+``calibrate('raytrace', start=pinhole)`` from images alone. Prints one row per design:
+the design, the raytrace RMS over the noise RMS (detected minus true), the pinhole's,
+the time of both calibrations, and the error of a failed one. Nothing is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # for tests.solvers.design_data
+
+
+def run_one(seed: int, noise: float, options=None) -> dict:
+    from tests.solvers.design_data import design_views, draw_design
+
+    from endomeasure.errors import EndomeasureError
+    from endomeasure.solvers.calibrate import calibrate
+
+    design = draw_design(seed)
+    data = design_views(design, seed, noise_px=noise)
+    size, split = design.truth.config.image_size, design.truth.config.split
+    row = dict(seed=seed, design=design.summary, noise=data.noise_rms_px)
+    t0 = time.perf_counter()
+    try:
+        pinhole = calibrate("pinhole", data.views, data.boards, size, split)
+        row["pinhole"] = pinhole.rms / data.noise_rms_px
+        raytrace = calibrate(
+            "raytrace", data.views, data.boards, size, split, options, start=pinhole
+        )
+        row["ratio"] = raytrace.rms / data.noise_rms_px
+        row["outliers"] = raytrace.outlier_count / raytrace.inliers.size
+        row["n_fit"] = raytrace.model.n_glass
+        row["start"] = raytrace.start
+    except EndomeasureError as exc:
+        row["error"] = str(exc)
+    row["time"] = time.perf_counter() - t0
+    row["n_true"] = design.truth.n_glass
+    return row
+
+
+def _seeds(text: str) -> list[int]:
+    out = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        out.extend(range(int(lo), int(hi or lo) + 1))
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", default="1-40")
+    parser.add_argument("--noise", type=float, default=0.04)
+    parser.add_argument("--free-n", action="store_true", help="free n_glass in the joint fit")
+    args = parser.parse_args()
+    from endomeasure.solvers.calibrate import CalibrationOptions
+
+    options = CalibrationOptions(free=frozenset({"n_glass"})) if args.free_n else None
+    rows = []
+    for seed in _seeds(args.seeds):
+        row = run_one(seed, args.noise, options)
+        rows.append(row)
+        ratio = row.get("ratio", float("nan"))
+        print(
+            f"{seed:3d} ratio {ratio:7.3f} pinhole {row.get('pinhole', float('nan')):8.2f} "
+            f"time {row['time']:5.1f} s n {row['n_true']:.3f}->{row.get('n_fit', float('nan')):.3f} "
+            f"| {row['design']} | {row.get('error', '')}",
+            flush=True,
+        )
+    ok = [r for r in rows if r.get("ratio", 99) <= 1.25]
+    times = sorted(r["time"] for r in rows)
+    print(f"{len(ok)}/{len(rows)} within 1.25x; median time {times[len(times) // 2]:.1f} s")
+
+
+if __name__ == "__main__":
+    main()
