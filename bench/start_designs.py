@@ -2,11 +2,13 @@
 
 Usage::
 
-    python bench/start_designs.py [--seeds 1-40] [--noise 0.04] [--jobs 1] [--fixed-n]
+    python bench/start_designs.py [--seeds 1-40] [--noise 0.04] [--free n_glass,k3] [--truth]
 
 For each design seed (``tests/solvers/design_data.py``): corners of 3 boards x 12 poses
-projected by the design's truth with Gaussian noise, then ``calibrate('pinhole')`` and
-``calibrate('raytrace', start=pinhole)`` from images alone. Prints one row per design:
+projected with Gaussian noise by the design's truth (``--truth``: the simulator's design
+space ``simulate.design`` and its own truth optics; else a random ``RaytraceModel``),
+then ``calibrate('pinhole')`` and ``calibrate('raytrace', start=pinhole)`` from images
+alone. Prints one row per design:
 the design, the raytrace RMS over the noise RMS (detected minus true), the pinhole's,
 the time of both calibrations, and the error of a failed one. Nothing is written.
 """
@@ -22,16 +24,22 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # for tests.solvers.design_data
 
 
-def run_one(seed: int, noise: float, options=None) -> dict:
-    from tests.solvers.design_data import design_views, draw_design
+def run_one(seed: int, noise: float, options=None, truth_optics: bool = False) -> dict:
+    from tests.solvers.design_data import design_views, draw_design, truth_design_views
 
     from endomeasure.errors import EndomeasureError
     from endomeasure.solvers.calibrate import calibrate
 
-    design = draw_design(seed)
-    data = design_views(design, seed, noise_px=noise)
-    size, split = design.truth.config.image_size, design.truth.config.split
-    row = dict(seed=seed, design=design.summary, noise=data.noise_rms_px)
+    if truth_optics:
+        drawn = truth_design_views(seed, noise)
+        data, size, split, n_true = drawn.sets, drawn.image_size, drawn.split, drawn.n_glass
+        summary = drawn.summary
+    else:
+        design = draw_design(seed)
+        data = design_views(design, seed, noise_px=noise)
+        size, split = design.truth.config.image_size, design.truth.config.split
+        summary, n_true = design.summary, design.truth.n_glass
+    row = dict(seed=seed, design=summary, noise=data.noise_rms_px, n_true=n_true)
     t0 = time.perf_counter()
     try:
         pinhole = calibrate("pinhole", data.views, data.boards, size, split)
@@ -46,7 +54,6 @@ def run_one(seed: int, noise: float, options=None) -> dict:
     except EndomeasureError as exc:
         row["error"] = str(exc)
     row["time"] = time.perf_counter() - t0
-    row["n_true"] = design.truth.n_glass
     return row
 
 
@@ -62,19 +69,24 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="1-40")
     parser.add_argument("--noise", type=float, default=0.04)
-    parser.add_argument("--free-n", action="store_true", help="free n_glass in the joint fit")
+    parser.add_argument("--free", default="", help="comma list of parameters to free")
+    parser.add_argument("--fixed", default=None, help="comma list of the parameters held")
+    parser.add_argument("--truth", action="store_true", help="simulate.design + truth optics")
     args = parser.parse_args()
     from endomeasure.solvers.calibrate import CalibrationOptions
 
-    options = CalibrationOptions(free=frozenset({"n_glass"})) if args.free_n else None
+    free = frozenset(filter(None, args.free.split(",")))
+    fixed = None if args.fixed is None else frozenset(filter(None, args.fixed.split(",")))
+    options = CalibrationOptions(free=free, fixed=fixed)
     rows = []
     for seed in _seeds(args.seeds):
-        row = run_one(seed, args.noise, options)
+        row = run_one(seed, args.noise, options, args.truth)
         rows.append(row)
         ratio = row.get("ratio", float("nan"))
         print(
             f"{seed:3d} ratio {ratio:7.3f} pinhole {row.get('pinhole', float('nan')):8.2f} "
-            f"time {row['time']:5.1f} s n {row['n_true']:.3f}->{row.get('n_fit', float('nan')):.3f} "
+            f"time {row['time']:5.1f} s "
+            f"n {row['n_true']:.3f}->{row.get('n_fit', float('nan')):.3f} "
             f"| {row['design']} | {row.get('error', '')}",
             flush=True,
         )

@@ -30,7 +30,7 @@ BOARD_RANGES = ((1.0, 1.7), (1.2, 3.0), (2.2, 4.5))
 """Distance ranges of the three boards in units of the near working distance (the
 default preset's 10-17, 12-30 and 22-45 mm over a 10 mm near distance)."""
 IMAGES_PER_BOARD = 12
-EDGE_DROP_PX = 3.0  # corners this close to a half's edge are lost with probability 1/2
+EDGE_DROP_PX = 3.0  # corners this close to the split are lost, to the image edge half of them
 
 
 class Design(NamedTuple):
@@ -184,6 +184,18 @@ def _pose(rng, z: float, centre_xy: np.ndarray, board: np.ndarray, max_tilt_deg:
     return R, centre - R @ board.mean(axis=0)
 
 
+def _detectable(q: np.ndarray, half: Half, split: int, size, rng) -> np.ndarray:
+    """Corners a detector finds: none within ``EDGE_DROP_PX`` of the split (the apex
+    band hides them), half of those that close to the outer edges of the image."""
+    width, height = size
+    lo_u, hi_u = (0, split) if half is Half.LEFT else (split, width)
+    at_split = (hi_u - q[:, 0]) if half is Half.LEFT else (q[:, 0] - lo_u)
+    outer = (q[:, 0] - lo_u) if half is Half.LEFT else (hi_u - q[:, 0])
+    edge = np.minimum.reduce([outer, q[:, 1], height - q[:, 1]])
+    lucky = rng.uniform(size=q.shape[0]) < 0.5
+    return (at_split > EDGE_DROP_PX) & ((edge > EDGE_DROP_PX) | lucky)
+
+
 class DesignSet(NamedTuple):
     views: list[ViewDetections]
     boards: dict[str, np.ndarray]
@@ -192,9 +204,14 @@ class DesignSet(NamedTuple):
 
 
 def design_views(
-    design: Design, seed: int, noise_px: float = 0.04, max_tilt_deg: float = 30.0
+    design: Design,
+    seed: int,
+    noise_px: float = 0.04,
+    max_tilt_deg: float = 30.0,
+    images_per_board: int = IMAGES_PER_BOARD,
 ) -> DesignSet:
-    """Three boards x twelve poses of a design's working range, projected by its truth."""
+    """Three boards x ``images_per_board`` poses of a design's working range, projected
+    by its truth."""
     from tests.solvers.calibration_data import board_corners
 
     truth = design.truth
@@ -214,9 +231,9 @@ def design_views(
         boards[name] = X
         made = 0
         tries = 0
-        while made < IMAGES_PER_BOARD and tries < 40 * IMAGES_PER_BOARD:
+        while made < images_per_board and tries < 40 * images_per_board:
             tries += 1
-            z = design.near_mm * (lo + (hi - lo) * (made + rng.uniform()) / IMAGES_PER_BOARD)
+            z = design.near_mm * (lo + (hi - lo) * (made + rng.uniform()) / images_per_board)
             # halfway between the two fields' centres at this depth, jittered
             (_, _, cl), (_, _, cr) = _field_at(rays, z)
             centre = 0.5 * (cl + cr) + rng.uniform(-0.08, 0.08, 2) * z
@@ -229,11 +246,7 @@ def design_views(
                 q0 = proj.pixels[ok]
                 q = q0 + noise_px * rng.standard_normal(q0.shape)
                 keep = in_half(q, half, split, (width, height))
-                lo_u, hi_u = (0, split) if half is Half.LEFT else (split, width)
-                edge = np.minimum.reduce(
-                    [q[:, 0] - lo_u, hi_u - q[:, 0], q[:, 1], height - q[:, 1]]
-                )
-                keep &= (edge > EDGE_DROP_PX) | (rng.uniform(size=edge.size) < 0.5)
+                keep &= _detectable(q, half, split, (width, height), rng)
                 ids.append(ok[keep])
                 pixels.append(q[keep])
                 exact.append(q0[keep])
@@ -245,3 +258,70 @@ def design_views(
             made += 1
     e = np.concatenate(errors)
     return DesignSet(views, boards, truths, float(np.sqrt(np.mean(np.sum(e * e, -1)))))
+
+
+# ----- the simulator's own design space and truth optics -----------------------------
+
+
+class TruthSet(NamedTuple):
+    """Calibration corners of a drawn design projected by the simulator's truth optics."""
+
+    summary: str
+    image_size: tuple[int, int]
+    split: int
+    n_glass: float
+    baseline_mm: float
+    sets: DesignSet
+
+
+def truth_design_views(seed: int, noise_px: float = 0.04, images: int | None = None) -> TruthSet:
+    """The calibration set of ``simulate.design.draw_design(seed)`` (its boards, its
+    protocol of poses), the corners projected by the design's :class:`TruthOptics`
+    (optics the calibrated models do not share), with Gaussian noise and a few corners
+    lost at the field edge; ``images`` keeps that many, spread over the set."""
+    from endomeasure.simulate.design import draw_design
+    from endomeasure.simulate.preset import Preset
+    from endomeasure.simulate.scenes import plan_set
+
+    data = draw_design(seed)
+    preset = Preset.from_dict(data)
+    optics = preset.truth_optics
+    width, height = optics.config.image_size
+    split = optics.config.split
+    shots = plan_set(preset, "calib", seed)
+    if images is not None:
+        keep = np.unique(np.linspace(0, len(shots) - 1, images).round().astype(int))
+        shots = [shots[k] for k in keep]
+    rng = np.random.default_rng([seed, 4421])
+    views, truths, errors, boards = [], [], [], {}
+    for shot in shots:
+        board = shot.target
+        boards.setdefault(board.name, board.corners_board)
+        P = board.corners_camera
+        ids, pixels, exact = [], [], []
+        for half in Half:
+            proj = optics.project(P, half)
+            ok = np.flatnonzero(proj.status == Status.OK)
+            q0 = proj.pixels[ok]
+            q = q0 + noise_px * rng.standard_normal(q0.shape)
+            keep = in_half(q, half, split, (width, height))
+            keep &= _detectable(q, half, split, (width, height), rng)
+            ids.append(ok[keep])
+            pixels.append(q[keep])
+            exact.append(q0[keep])
+        views.append(ViewDetections(shot.name, board.name, tuple(ids), tuple(pixels)))
+        truths.append(tuple(exact))
+        errors.extend(p - e for p, e in zip(pixels, exact, strict=True))
+    e = np.concatenate(errors)
+    rms = float(np.sqrt(np.mean(np.sum(e * e, -1))))
+    drawn = data["design"]["drawn"]
+    prism = data["prism"]
+    summary = (
+        f"{width}x{height} split {split}, n {optics.n_glass:.3f}, wedges "
+        f"{-prism['left_face']['a_deg']:.1f}/{prism['right_face']['a_deg']:.1f} deg, "
+        f"field {drawn['full_field_deg']:.0f} deg, distortion {drawn['corner_distortion']:.2f}, "
+        f"range {drawn['working_range_mm'][0]:.1f}-{drawn['working_range_mm'][1]:.1f} mm"
+    )
+    baseline = float(drawn["baseline_mm"])
+    return TruthSet(summary, (width, height), split, optics.n_glass, baseline,
+                    DesignSet(views, boards, truths, rms))  # fmt: skip

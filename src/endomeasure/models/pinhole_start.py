@@ -12,6 +12,7 @@ import numpy as np
 
 from endomeasure.conventions import Half
 from endomeasure.errors import CalibrationError
+from endomeasure.geometry.distortion import max_monotonic_radius2
 from endomeasure.geometry.rotations import rotation_matrix, rotation_vector
 from endomeasure.models.pinhole import PinholeModel
 from endomeasure.models.start import Observations, Start, StartContext
@@ -41,9 +42,14 @@ def _calibrate_half(obs: Observations, half: Half, image_size, split):
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # its parallel reductions differ in the last bits from run to run
     try:
-        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
-            objp, imgp, size, None, None, flags=cv2.CALIB_FIX_K3
-        )
+        # radial k1 k2 (stable for ordinary fields), then k3 as well when that polynomial
+        # folds back inside the observed field (strong wide-angle distortion)
+        for flags in (cv2.CALIB_FIX_K3, 0):
+            rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+                objp, imgp, size, None, None, flags=flags
+            )
+            if _folded_corners(objp, rvecs, tvecs, dist) == 0:
+                break
     except cv2.error as exc:
         raise CalibrationError(
             f"the initial calibration of the {half.label} half failed "
@@ -63,6 +69,20 @@ def _calibrate_half(obs: Observations, half: Half, image_size, split):
     rv = [np.asarray(r, dtype=np.float64).reshape(3) for r in rvecs]
     tv = [np.asarray(t, dtype=np.float64).reshape(3) for t in tvecs]
     return intr, dict(zip(images, zip(rv, tv, strict=True), strict=True))
+
+
+def _folded_corners(objp, rvecs, tvecs, dist) -> int:
+    """How many corners lie beyond the radius where the fitted radial polynomial folds
+    back: the model refuses to project them (``max_monotonic_radius2``), so such a fit
+    cannot start the joint one."""
+    d = (list(np.asarray(dist, dtype=np.float64).reshape(-1)) + [0.0] * 5)[:5]
+    r2_max = max_monotonic_radius2(d[0], d[1], d[4])
+    count = 0
+    for X, rv, tv in zip(objp, rvecs, tvecs, strict=True):
+        P = X.reshape(-1, 3) @ rotation_matrix(np.ravel(rv)).T + np.ravel(tv)
+        r2 = (P[:, 0] ** 2 + P[:, 1] ** 2) / P[:, 2] ** 2
+        count += int(np.sum(r2 > r2_max))
+    return count
 
 
 def mean_rotation(Rs: np.ndarray) -> np.ndarray:

@@ -18,7 +18,7 @@ from endomeasure.errors import CalibrationError
 from endomeasure.geometry.rotations import rotation_matrix, rotation_vector
 from endomeasure.models.base import ParamBatch
 from endomeasure.models.pinhole import PinholeModel
-from endomeasure.models.raytrace import RaytraceModel, plane_normal
+from endomeasure.models.raytrace import DEFAULT_GLASS_INDEX, RaytraceModel, plane_normal
 from endomeasure.models.start import Observations, Start, StartContext
 
 __all__ = [
@@ -314,12 +314,21 @@ def _subset(obs: Observations, rows: np.ndarray) -> Observations:
                                pixels=obs.pixels[rows])  # fmt: skip
 
 
+def _glasses(ctx: StartContext) -> tuple[float, ...]:
+    """The glass indices to try: the user's, or the fixed default when calibration holds
+    the glass fixed, else every candidate (the data determine it; docs/models.md)."""
+    if "n_glass" in ctx.values:
+        return (float(ctx.values["n_glass"]),)
+    if "n_glass" in ctx.config.fixed:
+        return (DEFAULT_GLASS_INDEX,)
+    return GLASS_CANDIDATES
+
+
 def _candidates(ctx: StartContext, pinhole: PinholeModel):
-    """The analytic starts to try: every glass candidate (only the user's glass when
-    given) and rear-face depth, the lens axis on the split column (the apex on the axis:
-    the backward fit moves it, and a start on the sensor centre reaches the same fits)."""
-    glasses = (ctx.values["n_glass"],) if "n_glass" in ctx.values else GLASS_CANDIDATES
-    for n in glasses:
+    """The analytic starts to try: every glass of :func:`_glasses` and rear-face depth,
+    the lens axis on the split column (the apex on the axis: the backward fit moves it,
+    and a start on the sensor centre reaches the same fits)."""
+    for n in _glasses(ctx):
         for fraction in REAR_FRACTIONS:
             try:
                 yield _analytic_start(pinhole, ctx.obs, n, ctx.config.split - 0.5, fraction)
@@ -333,8 +342,8 @@ def _searched(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
     Every candidate is fitted by backward traces to a few corners of every view
     (:func:`_ray_fit`, glass held); the distinct ones that trace (cost within a factor
     of the best) are refined on the pixels of a few corners of every view with their
-    board poses (from ``T_raytrace_left T_left_board``) and the glass free unless the
-    user set it (``ctx.refine``), and ranked by that cost: the calibration's own, so
+    board poses (from ``T_raytrace_left T_left_board``), the glass free unless
+    calibration holds it (``ctx.refine``), and ranked by that cost: the calibration's own, so
     the glass and depth that fit best win.
     """
     obs = ctx.obs
@@ -368,7 +377,7 @@ def _searched(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
         rv = rotation_vector(R_t @ rotation_matrix(rvecs))
         tv = tvecs @ R_t.T + t_t
         try:
-            fit = ctx.refine(model.with_config(fixed=_seeding_fixed(ctx)), views, rv, tv)
+            fit = ctx.refine(model.with_config(fixed=ctx.config.fixed), views, rv, tv)
         except CalibrationError:
             continue
         cost = _pixel_cost(fit, views)
@@ -400,7 +409,8 @@ def seed_raytrace(ctx: StartContext, base: Start) -> Start:
     ----------
     ctx : StartContext
         ``ctx.seed`` (a raytrace model with design values) replaces the search;
-        ``ctx.values`` may set ``n_glass`` (then the only glass tried, and held).
+        ``ctx.values`` may set ``n_glass`` (then the only glass tried); a glass held
+        fixed by ``ctx.config`` and not set is the catalogue default.
     base : Start
         The refined pinhole pair with ``T_left_board`` per image.
 
@@ -447,16 +457,7 @@ def _seeded(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
     rv = rotation_vector(R_t @ rotation_matrix(rvecs))
     tv = tvecs @ R_t.T + t_t
     views = _subset(obs, _rank_rows(obs, PIXEL_CORNERS_PER_HALF))
-    return ctx.refine(model.with_config(fixed=_seeding_fixed(ctx)), views, rv, tv)
-
-
-def _seeding_fixed(ctx: StartContext) -> frozenset[str]:
-    """What the ranking's pixel fits hold: the configuration's fixed parameters, with
-    the glass freed unless the user gave it (the data determine it; see docs/models.md)."""
-    fixed = set(ctx.config.fixed)
-    if "n_glass" not in ctx.values:
-        fixed.discard("n_glass")
-    return frozenset(fixed)
+    return ctx.refine(model.with_config(fixed=ctx.config.fixed), views, rv, tv)
 
 
 def _seed_frame(model: RaytraceModel, pinhole: PinholeModel):
