@@ -108,3 +108,49 @@ def test_cli_json_output_and_errors(tmp_path, small_preset_file):
     assert bad.exit_code == 2
     assert "unknown simulator preset" in bad.output
     assert "Traceback" not in bad.output
+
+
+def test_random_preset_writes_the_drawn_design_and_labels_the_truth_model(tmp_path, monkeypatch):
+    """The plumbing of ``--preset random --design-seed N`` (the draw itself: test_design)."""
+    import copy
+
+    from endomeasure.simulate import design
+
+    from .conftest import small_preset_data
+
+    drawn = small_preset_data()
+    drawn["lens"].update(distortion_direction="pixel_to_ray", k1=0.1, pupil_shift_mm=0.05)
+    drawn["design"] = {"seed": 9, "attempt": 0, "ranges_version": design.DESIGN_RANGES_VERSION}
+    seeds = []
+    monkeypatch.setattr(design, "draw_design", lambda n: seeds.append(n) or copy.deepcopy(drawn))
+    out = tmp_path / "random"
+    result = runner.invoke(
+        cli.app,
+        ["simulate", str(out), "--preset", "random", "--design-seed", "9", "--set", "scene",
+         "--json"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert seeds == [9]
+    assert json.loads(result.stdout)["design_seed"] == 9
+    assert json.loads((out / "preset.json").read_text()) == drawn
+    manifest = json.loads((out / MANIFEST_NAME).read_text())
+    assert manifest["design"]["seed"] == 9
+    assert manifest["truth_optics"]["raytrace_representable"] is False
+    assert manifest["truth_model_kind"] == "approximate-seed"
+    assert manifest["truth_model"]["model"] == "raytrace"
+
+
+def test_design_seed_goes_with_the_random_preset_only(tmp_path, small_preset_file):
+    with pytest.raises(BadInputError, match="design-seed"):
+        simulate(tmp_path / "a", "random", ["test"])
+    with pytest.raises(BadInputError, match="design-seed"):
+        simulate(tmp_path / "b", "random", ["test"], design_seed=-2)
+    with pytest.raises(BadInputError, match="random"):
+        simulate(tmp_path / "c", small_preset_file, ["test"], design_seed=3)
+
+
+def test_default_manifest_says_its_truth_model_is_exact(tmp_path, small_preset_file):
+    simulate(tmp_path / "d", small_preset_file, ["scene"], seed=0)
+    manifest = json.loads((tmp_path / "d" / MANIFEST_NAME).read_text())
+    assert manifest["truth_model_kind"] == "exact"
+    assert manifest["truth_optics"]["raytrace_representable"] is True

@@ -21,6 +21,7 @@ import numpy as np
 
 from endomeasure.conventions import Half, Status
 from endomeasure.simulate.preset import PRESET_FORMAT, PRESET_VERSION, Preset
+from endomeasure.simulate.scenes import APEX_CLEARANCE_SIGMAS, BORDER_CLEARANCE_PX
 from endomeasure.simulate.truth_optics import LensMap, TruthOptics
 
 __all__ = [
@@ -86,9 +87,11 @@ BOARD_FILL = 0.7
 RANGE_RATIO = 1.4
 """The small board's squares are this many times ``MIN_SQUARE_PX`` at the near end, so
 its range spans at least this ratio of distances."""
-MAX_TIR_FRACTION = 0.02
-"""TIR may darken at most this fraction of the image, and none of the middle half of rows."""
+MAX_DARK_FRACTION = 0.02
+"""TIR and rays missing a face may darken at most this fraction of the image, and nothing
+of its centre (the middle half of the rows and 60 % of the columns)."""
 MAX_ATTEMPTS = 200
+_LENS_TRIES = 50
 _GRID = (64, 48)  # pixels per axis checked for TIR and lens folding
 _BOARDS = (("board_s", 8, 6), ("board_m", 6, 5), ("board_l", 6, 5))
 
@@ -160,7 +163,8 @@ def _lens(rng, width: int, height: int) -> dict[str, Any]:
         theta_corner = np.arctan(rd_corner * (1.0 + dp))
         reach = rd_corner
     # the lens map must be one-to-one a little beyond the corner (its input radius there)
-    if LensMap(tuple(float(v) for v in k), 0.0, 0.0).max_radius < 1.05 * reach:
+    # (the principal point's offset moves the farthest corner out by up to 5 %)
+    if LensMap(tuple(float(v) for v in k), 0.0, 0.0).max_radius < 1.1 * reach:
         raise DesignError("the drawn distortion folds inside the image")
     fx = float(np.hypot(width / 2.0, height / 2.0) / rd_corner)
     off = min(RANGES["principal_offset_fraction"] * width, RANGES["principal_offset_max_px"])
@@ -257,12 +261,17 @@ def _check_optics(optics: TruthOptics) -> None:
     for half in Half:
         st = optics.rays(q, half).status
         status = np.where(st != Status.OUTSIDE_HALF, st, status)
-    tir = status == Status.TOTAL_INTERNAL_REFLECTION
-    middle = (q[:, 1] > height / 4) & (q[:, 1] < 3 * height / 4)
-    if tir.mean() > MAX_TIR_FRACTION or (tir & middle).any():
-        raise DesignError(f"total internal reflection in {tir.mean():.1%} of the image")
-    if np.any((status != Status.OK) & ~tir):
-        raise DesignError("the lens map folds or a face is missed inside the image")
+    # TIR and rays leaving through the prism's side (a face missed) darken the image
+    dark = (status == Status.TOTAL_INTERNAL_REFLECTION) | (status == Status.BEHIND)
+    central = (np.abs(q[:, 1] - height / 2) < height / 4) & (
+        np.abs(q[:, 0] - width / 2) < 0.3 * width
+    )
+    if dark.mean() > MAX_DARK_FRACTION or (dark & central).any():
+        raise DesignError(
+            f"total internal reflection or a missed face in {dark.mean():.1%} of the image"
+        )
+    if np.any((status != Status.OK) & ~dark):
+        raise DesignError("the lens map does not invert inside the image")
     cols = optics.apex_columns(np.linspace(0, height - 1, 9))
     if not np.all(np.isfinite(cols)) or cols.min() < 0.2 * width or cols.max() > 0.8 * width:
         raise DesignError("the apex band leaves the middle 60 % of the image width")
@@ -284,62 +293,57 @@ def _apex(optics: TruthOptics) -> np.ndarray:
 _APEX_MEMO: dict[int, tuple] = {}
 
 
-def _half_maps(optics: TruthOptics, z: float):
-    """Per half: pixels of a grid over the half and where their rays meet the plane z."""
-    width, height = optics.config.image_size
-    out = []
-    for half in Half:
-        lo, hi = (
-            (0, optics.config.split - 1) if half is Half.LEFT else (optics.config.split, width - 1)
-        )
-        q = np.stack(np.meshgrid(np.linspace(lo, hi, 28), np.linspace(0, height - 1, 28)), -1)
-        q = q.reshape(-1, 2)
-        r = optics.rays(q, half)
-        ok = (r.status == Status.OK) & (r.directions[:, 2] > 0)
-        s = (z - r.origins[ok, 2]) / r.directions[ok, 2]
-        out.append((half, q[ok], r.origins[ok, :2] + s[:, None] * r.directions[ok, :2]))
-    return out
-
-
-def _footprints(optics: TruthOptics, maps, points: np.ndarray, margin_px: float, apex):
-    """Whether each point (N, 2) of the plane is seen in both halves, clear of the border
-    and of the apex image by ``margin_px``: the pixel of a point is interpolated linearly
-    (Delaunay) from the half's grid traced to the plane (``maps``, :func:`_half_maps`)."""
-    from scipy.interpolate import LinearNDInterpolator
-
+def _half_outline(optics: TruthOptics, half: Half, z: float, margin_px: float, apex) -> np.ndarray:
+    """Where the outline of a half's usable pixels (``margin_px`` inside the image border
+    and away from the apex image) meets the plane at depth z: a polygon (K, 2), mm."""
     width, height = optics.config.image_size
     rows = np.linspace(0, height - 1, _APEX_ROWS)
-    seen = np.ones(points.shape[0], dtype=bool)
-    for half, q, xy in maps:
-        uv = LinearNDInterpolator(xy, q)(points)
-        with np.errstate(invalid="ignore"):
-            inside = (uv[:, 0] > margin_px) & (uv[:, 0] < width - 1 - margin_px)
-            inside &= (uv[:, 1] > margin_px) & (uv[:, 1] < height - 1 - margin_px)
-            u_apex = np.interp(uv[:, 1], rows, apex)
-            if half is Half.LEFT:
-                inside &= uv[:, 0] < u_apex - margin_px
-            else:
-                inside &= uv[:, 0] > u_apex + margin_px
-        seen &= inside
-    return seen
+    v = np.linspace(margin_px, height - 1 - margin_px, 60)
+    u_apex = np.interp(v, rows, apex)
+    if half is Half.LEFT:
+        inner, outer = u_apex - margin_px, np.full_like(v, margin_px)
+    else:
+        inner, outer = u_apex + margin_px, np.full_like(v, width - 1 - margin_px)
+    f = np.linspace(0.0, 1.0, 40)
+    top = np.stack([outer[0] + f * (inner[0] - outer[0]), np.full_like(f, v[0])], -1)
+    side = np.stack([inner, v], -1)
+    bottom = np.stack([inner[-1] + f * (outer[-1] - inner[-1]), np.full_like(f, v[-1])], -1)
+    back = np.stack([outer[::-1], v[::-1]], -1)
+    q = np.concatenate([top, side, bottom, back])
+    r = optics.rays(q, half)
+    ok = (r.status == Status.OK) & (r.directions[:, 2] > 0)
+    s = (z - r.origins[ok, 2]) / r.directions[ok, 2]
+    return r.origins[ok, :2] + s[:, None] * r.directions[ok, :2]
+
+
+def _inside(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """Point-in-polygon by the crossing number, points (N, 2), polygon (K, 2)."""
+    x, y = points[:, 0:1], points[:, 1:2]
+    a, b = polygon, np.roll(polygon, -1, axis=0)
+    spans = (a[:, 1] > y) != (b[:, 1] > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cross = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+    return (np.sum(spans & (x < cross), axis=1) % 2) == 1
 
 
 def common_field(optics: TruthOptics, z: float, margin_px: float = 4.0) -> dict[str, float]:
     """The region of the plane at depth ``z`` (mm) both halves see, clear of the borders
     and of ``margin_px`` around the apex image: its centre, width and height along the
-    lines through the centre, mm, and its scale (px per mm, the smaller of the halves)."""
-    maps = _half_maps(optics, z)
-    (_, _, a), (_, _, b) = maps
-    lo = np.maximum(a.min(axis=0), b.min(axis=0))
-    hi = np.minimum(a.max(axis=0), b.max(axis=0))
+    lines through the centre, mm, and its scale (px per mm: the smallest of both halves
+    at the centre and at 35 % of the smaller of width and height out from it)."""
+    apex = _apex(optics)
+    outlines = [_half_outline(optics, half, z, margin_px, apex) for half in Half]
+    if min(len(o) for o in outlines) < 10:
+        raise DesignError(f"a half's outline does not reach the plane at {z:.1f} mm")
+    lo = np.maximum(outlines[0].min(axis=0), outlines[1].min(axis=0))
+    hi = np.minimum(outlines[0].max(axis=0), outlines[1].max(axis=0))
     if not np.all(hi > lo):
         raise DesignError(f"the halves see nothing in common at {z:.1f} mm")
     xs = np.linspace(lo[0], hi[0], 81)
     ys = np.linspace(lo[1], hi[1], 81)
     gx, gy = np.meshgrid(xs, ys)
-    apex = _apex(optics)
-    seen = _footprints(optics, maps, np.stack([gx.ravel(), gy.ravel()], -1), margin_px, apex)
-    seen = seen.reshape(gx.shape)
+    grid = np.stack([gx.ravel(), gy.ravel()], -1)
+    seen = (_inside(grid, outlines[0]) & _inside(grid, outlines[1])).reshape(gx.shape)
     if seen.sum() < 4:
         raise DesignError(f"the halves see nothing in common at {z:.1f} mm")
     iy, ix = np.nonzero(seen)
@@ -347,11 +351,16 @@ def common_field(optics: TruthOptics, z: float, margin_px: float = 4.0) -> dict[
     xc, yc = float(xs[cx]), float(ys[cy])
     w = float(seen[cy].sum() * (xs[1] - xs[0]))
     h = float(seen[:, cx].sum() * (ys[1] - ys[0]))
-    probe = np.array([[xc - 0.5, yc, z], [xc + 0.5, yc, z], [xc, yc - 0.5, z], [xc, yc + 0.5, z]])
+    # the local scale (px per mm) at the centre and out to a board's edge, the smallest
+    reach = 0.35 * min(w, h)
+    spots = [(0.0, 0.0)] + [(sx * reach, sy * reach) for sx in (-1, 1) for sy in (-1, 1)]
+    d = np.array([[-0.5, 0.0], [0.5, 0.0], [0.0, -0.5], [0.0, 0.5]])
+    probe = np.array([[xc + dx + a, yc + dy + b, z] for dx, dy in spots for a, b in d])
     scale = np.inf
     for half in Half:
-        q = optics.project(probe, half).pixels
-        scale = min(scale, np.linalg.norm(q[1] - q[0]), np.linalg.norm(q[3] - q[2]))
+        q = optics.project(probe, half).pixels.reshape(len(spots), 4, 2)
+        steps = np.linalg.norm(q[:, [1, 3]] - q[:, [0, 2]], axis=-1)
+        scale = min(scale, float(np.min(steps)) if np.all(np.isfinite(steps)) else np.nan)
     if not np.isfinite(scale):
         raise DesignError(f"the common field's centre at {z:.1f} mm is not seen in both halves")
     return {"x_mm": xc, "y_mm": yc, "width_mm": w, "height_mm": h, "px_per_mm": float(scale)}
@@ -410,7 +419,7 @@ def _fit_distance(cfs: list[dict], zs: np.ndarray, board: tuple, square: float) 
     return float(np.interp(square, room[k - 1 : k + 1], zs[k - 1 : k + 1]))
 
 
-def _boards(optics: TruthOptics, near: float, far: float):
+def _boards(optics: TruthOptics, near: float, far: float, margin_px: float):
     """Three boards and the distances each is detectable at.
 
     The small board fills ``BOARD_FILL`` of the common field at the near end, the large
@@ -420,7 +429,7 @@ def _boards(optics: TruthOptics, near: float, far: float):
     range); the ranges must overlap so that together they span the working range.
     """
     zs = np.geomspace(near, far, 7)
-    cfs = [common_field(optics, float(z)) for z in zs]
+    cfs = [common_field(optics, float(z), margin_px) for z in zs]
     focal = np.array([cf["px_per_mm"] * z for cf, z in zip(cfs, zs, strict=True)])
     # the small board: as many corners (up to the default's 8 x 6) as fit BOARD_FILL of
     # the common field at the near end with squares RANGE_RATIO x MIN_SQUARE_PX wide
@@ -436,22 +445,34 @@ def _boards(optics: TruthOptics, near: float, far: float):
     small = _round2(
         BOARD_FILL * min(cfs[0]["width_mm"] / (cols + 1), cfs[0]["height_mm"] / (rows + 1)), "down"
     )
-    late = common_field(optics, far / 1.6)
+    late = common_field(optics, far / 1.6, margin_px)
     _, lcols, lrows = layouts[-1]
     large = max(
         MIN_SQUARE_PX * far / focal[-1],
         BOARD_FILL * min(late["width_mm"] / (lcols + 1), late["height_mm"] / (lrows + 1)),
     )
     large = _round2(large, "up")
-    squares = (small, _round2(np.sqrt(small * large)), large)
     out = []
-    for board, square in zip(layouts, squares, strict=True):
+
+    def board_range(board, square):
         lo = max(near, _fit_distance(cfs, zs, board, square))
         px = focal * square / zs  # square width in px at each sampled distance
         hi = far if px[-1] >= MIN_SQUARE_PX else float(np.interp(-MIN_SQUARE_PX, -px, zs))
         if not hi >= 1.2 * lo:
             raise DesignError(f"{board[0]} ({square:.3g} mm squares) fits no range of distances")
-        out.append((board, square, lo, hi))
+        return board, square, lo, hi
+
+    out = [board_range(layouts[0], small), None, board_range(layouts[2], large)]
+    # the middle board bridges them: it fits by the small one's far end and is still
+    # detectable at the large one's near end (the geometric middle of what does both)
+    hi_small, lo_large = out[0][3], out[2][2]
+    _, mcols, mrows = layouts[1]
+    k = int(np.argmin(np.abs(zs - hi_small)))
+    fits = BOARD_FILL * min(cfs[k]["width_mm"] / (mcols + 1), cfs[k]["height_mm"] / (mrows + 1))
+    seen = MIN_SQUARE_PX * lo_large / float(np.interp(lo_large, zs, focal))
+    if not seen <= fits:
+        raise DesignError("no middle board bridges the small and the large boards' ranges")
+    out[1] = board_range(layouts[1], _round2(np.sqrt(seen * fits)))
     if out[1][2] > out[0][3] or out[2][2] > out[1][3]:
         raise DesignError("the boards' distance ranges leave a gap in the working range")
     return out, cfs, zs, focal
@@ -472,12 +493,22 @@ def _targets(boards, scene: dict, charuco_mm: float) -> dict[str, Any]:
     return targets
 
 
-def _protocol(rng, optics: TruthOptics, apex_z: float) -> dict[str, Any]:
-    """Working range, illumination, targets and image sets scaled to the optics."""
+def _protocol(rng, optics: TruthOptics, apex_z: float, data: dict) -> dict[str, Any]:
+    """Working range, illumination, targets and image sets scaled to the optics.
+
+    ``data`` is the preset so far (sensor, lens, prism); its ``best_focus_mm`` is set here,
+    between the ends of the working range, before the apex band's width is known.
+    """
     baseline = _baseline(optics)
     near = _convergence(optics, baseline) * _u(rng, RANGES["near_over_convergence"])
     far = near * _u(rng, RANGES["far_over_near"])
-    boards, cfs, zs, focal = _boards(optics, near, far)
+    focus = float(np.sqrt(near * far) * _u(rng, (0.7, 0.9)))
+    data["lens"]["best_focus_mm"] = round(focus, 3)
+    # the scenes keep boards APEX_CLEARANCE_SIGMAS band sigmas (and a border) clear of the
+    # apex image: the common field the boards are sized for keeps the same clearance
+    band = Preset(data).apex_band_sigma_px
+    margin = max(4.0, APEX_CLEARANCE_SIGMAS * band + BORDER_CLEARANCE_PX)
+    boards, cfs, zs, focal = _boards(optics, near, far, margin)
     width = optics.config.image_size[0]
 
     def centre_deg(z):
@@ -538,7 +569,6 @@ def _protocol(rng, optics: TruthOptics, apex_z: float) -> dict[str, Any]:
         },
         "_working_range_mm": [near, far],
         "_baseline_mm": baseline,
-        "_best_focus_mm": float(np.sqrt(near * far) * _u(rng, (0.7, 0.9))),
     }  # fmt: skip
 
 
@@ -554,7 +584,14 @@ def _draw_once(seed: int, attempt: int) -> dict[str, Any]:
     rng = np.random.default_rng([int(seed), int(attempt), 0x64657369])
     sensor = _sensor(rng)
     width, height = sensor["image_size"]
-    lens = _lens(rng, width, height)
+    for _ in range(_LENS_TRIES):  # redraw only the lens while its map folds (cheap)
+        try:
+            lens = _lens(rng, width, height)
+            break
+        except DesignError:
+            continue
+    else:
+        raise DesignError("every lens drawn folds inside the image")
     prism = _prism(rng, lens, width, height)
     drawn = {k[1:]: lens.pop(k) for k in [k for k in lens if k.startswith("_")]}
     data: dict[str, Any] = {
@@ -570,8 +607,7 @@ def _draw_once(seed: int, attempt: int) -> dict[str, Any]:
     except ValueError as exc:  # the apex does not image in the middle row, or worse
         raise DesignError(str(exc)) from None
     _check_optics(optics)
-    protocol = _protocol(rng, optics, prism["apex_mm"][2])
-    data["lens"]["best_focus_mm"] = round(protocol.pop("_best_focus_mm"), 3)
+    protocol = _protocol(rng, optics, prism["apex_mm"][2], data)
     drawn["working_range_mm"] = [round(v, 3) for v in protocol.pop("_working_range_mm")]
     drawn["baseline_mm"] = round(protocol.pop("_baseline_mm"), 4)
     drawn["wedge_deg"] = [-prism["left_face"]["a_deg"], prism["right_face"]["a_deg"]]
