@@ -10,7 +10,9 @@ space ``simulate.design`` and its own truth optics; else a random ``RaytraceMode
 then ``calibrate('pinhole')`` and ``calibrate('raytrace', start=pinhole)`` from images
 alone. Prints one row per design:
 the design, the raytrace RMS over the noise RMS (detected minus true), the pinhole's,
-the time of both calibrations, and the error of a failed one. Nothing is written.
+the time of both calibrations (and as a ratio to ``cv2.stereoCalibrate`` on the same
+detections, timed just before, which the machine's load affects alike), and the error
+of a failed one. Nothing is written.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # for tests.solvers.design_data
+sys.path.insert(0, str(ROOT / "bench"))  # for _common
 
 
 def run_one(seed: int, noise: float, options=None, truth_optics: bool = False) -> dict:
@@ -39,7 +42,12 @@ def run_one(seed: int, noise: float, options=None, truth_optics: bool = False) -
         data = design_views(design, seed, noise_px=noise)
         size, split = design.truth.config.image_size, design.truth.config.split
         summary, n_true = design.summary, design.truth.n_glass
+    from _common import stereo_calibrate_peer
+
     row = dict(seed=seed, design=summary, noise=data.noise_rms_px, n_true=n_true)
+    t0 = time.perf_counter()
+    stereo_calibrate_peer(data.views, data.boards, size, split)
+    row["peer"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     try:
         pinhole = calibrate("pinhole", data.views, data.boards, size, split)
@@ -85,14 +93,18 @@ def main() -> None:
         ratio = row.get("ratio", float("nan"))
         print(
             f"{seed:3d} ratio {ratio:7.3f} pinhole {row.get('pinhole', float('nan')):8.2f} "
-            f"time {row['time']:5.1f} s "
+            f"time {row['time']:5.1f} s ({row['time'] / row['peer']:4.1f}x peer) "
             f"n {row['n_true']:.3f}->{row.get('n_fit', float('nan')):.3f} "
             f"| {row['design']} | {row.get('error', '')}",
             flush=True,
         )
     ok = [r for r in rows if r.get("ratio", 99) <= 1.25]
     times = sorted(r["time"] for r in rows)
-    print(f"{len(ok)}/{len(rows)} within 1.25x; median time {times[len(times) // 2]:.1f} s")
+    ratios = sorted(r["time"] / r["peer"] for r in rows)
+    print(
+        f"{len(ok)}/{len(rows)} within 1.25x; median time {times[len(times) // 2]:.1f} s, "
+        f"{ratios[len(ratios) // 2]:.1f}x cv2.stereoCalibrate"
+    )
 
 
 if __name__ == "__main__":

@@ -94,11 +94,6 @@ REAR_FRACTIONS = (0.3, 0.75)
 lens ray meets its front face: a prism most of whose depth is glass, and a thin one
 (physically the rear face must lie before every front-face hit; the fits move it)."""
 RANK_CORNERS_PER_HALF = 4
-MAX_RANKED = 3
-RAY_COST_KEEP = 3.0
-"""Candidates whose backward-trace cost is within this factor of the best are ranked on
-the pixels: the pinhole pair's own model error limits that cost, so it cannot tell
-close candidates apart, but it rejects those that do not trace the field."""
 RAY_FIT_NFEV = 60
 PIXEL_CORNERS_PER_HALF = 8
 """Corners per image and half on which the surviving candidates are refined with every
@@ -160,7 +155,8 @@ def _analytic_start(
     Notes
     -----
     ``fx = fy`` (square pixels; a prism magnifies only across its wedge, so ``fy`` is
-    the virtual cameras'); the lens axis and the front-face tilts from the 2-D fit
+    the virtual cameras'), the radial distortion the virtual cameras' mean (the lens's
+    dominates theirs); the lens axis and the front-face tilts from the 2-D fit
     :func:`_plane_fit`, the rear face perpendicular to the axis; the lens centre midway
     between the virtual centres; the apex ``z`` from the virtual centres' spread (a
     prism at ``z`` shifts a virtual centre by about ``z tan(delta)``) and on the ray of
@@ -192,7 +188,9 @@ def _analytic_start(
     if not (z_glass > 0 and math.isfinite(z_glass)):
         raise ValueError("the front faces do not lie in front of the lens")
     values = dict(
-        fx=fx, fy=fy, cx=cx, cy=cy, k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0,
+        fx=fx, fy=fy, cx=cx, cy=cy, k3=0.0, p1=0.0, p2=0.0,
+        k1=0.5 * (pinhole.left_k1 + pinhole.right_k1),
+        k2=0.5 * (pinhole.left_k2 + pinhole.right_k2),
         rear_a=0.0, rear_b=0.0, rear_d=rear_fraction * z_glass,
         left_a=tilts[0], left_b=0.0, left_d=float(faces["left"] @ apex),
         right_a=tilts[1], right_b=0.0, right_d=float(faces["right"] @ apex),
@@ -340,56 +338,52 @@ def _searched(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
     """The candidate start of least pixel cost (a ``Fit`` with a pose per image).
 
     Every candidate is fitted by backward traces to a few corners of every view
-    (:func:`_ray_fit`, glass held); the distinct ones that trace (cost within a factor
-    of the best) are refined on the pixels of a few corners of every view with their
-    board poses (from ``T_raytrace_left T_left_board``), the glass free unless
-    calibration holds it (``ctx.refine``), and ranked by that cost: the calibration's own, so
-    the glass and depth that fit best win.
+    (:func:`_ray_fit`, glass held). That cost cannot tell the glasses apart (the pinhole
+    pair's own model error limits it), so the best of each glass is refined on the
+    pixels of a few corners of every view with its board poses (from
+    ``T_raytrace_left T_left_board``) and its glass still held, and ranked by that
+    cost, the calibration's own; the winner is refined once more with the glass free
+    unless calibration holds it.
     """
     obs = ctx.obs
     R = rotation_matrix(rvecs)[obs.image]
     P_left = np.einsum("nij,nj->ni", R, obs.board_points) + tvecs[obs.image]
-    fixed = frozenset(set(ctx.config.fixed) | {"n_glass"})
+    held = ctx.config.with_fixed(set(ctx.config.fixed) | {"n_glass"})
     rows = _rank_rows(obs, RANK_CORNERS_PER_HALF)
     sub, P_sub = _subset(obs, rows), P_left[rows]
-    tried = []
+    best_of_glass = {}
     for params, R_t, t_t in _candidates(ctx, pinhole):
         try:
-            model = RaytraceModel(params, ctx.config.with_fixed(fixed))
+            model = RaytraceModel(params, held)
         except ValueError:
             continue
-        tried.append(_ray_fit(model, R_t, t_t, sub, P_sub, RAY_FIT_NFEV))
-    tried = [f for f in tried if math.isfinite(f[3])]
-    if not tried:
-        raise CalibrationError("no start of the raytrace model traces the corners")
-    tried.sort(key=lambda f: f[3])
-    keep = []
-    for f in tried:  # distinct outcomes only: many candidates reach the same fit
-        if f[3] <= RAY_COST_KEEP * tried[0][3] and not any(
-            abs(f[3] - k[3]) < 0.02 * k[3] and abs(f[0].n_glass - k[0].n_glass) < 0.01 for k in keep
-        ):
-            keep.append(f)
-    keep = keep[:MAX_RANKED]
-    _debug(f"ray fits: {[(round(f[0].n_glass, 2), round(f[0].cx), round(f[3], 2)) for f in tried]}")
+        fit = _ray_fit(model, R_t, t_t, sub, P_sub, RAY_FIT_NFEV)
+        n = float(params[model.index("n_glass")])
+        if math.isfinite(fit[3]) and (n not in best_of_glass or fit[3] < best_of_glass[n][3]):
+            best_of_glass[n] = fit
+    _debug(f"ray fits: {[(n, round(f[3], 2)) for n, f in best_of_glass.items()]}")
     views = _subset(obs, _rank_rows(obs, PIXEL_CORNERS_PER_HALF))
     best = None
-    for model, R_t, t_t, _ in keep:
+    for model, R_t, t_t, _ in best_of_glass.values():
         rv = rotation_vector(R_t @ rotation_matrix(rvecs))
         tv = tvecs @ R_t.T + t_t
         try:
-            fit = ctx.refine(model.with_config(fixed=ctx.config.fixed), views, rv, tv)
+            fit = ctx.refine(model, views, rv, tv)
         except CalibrationError:
             continue
         cost = _pixel_cost(fit, views)
-        _debug(
-            f"ranked n {model.n_glass:.2f} -> {fit.model.n_glass:.3f} cost {cost:.3f} "
-            f"nfev {fit.nfev} status {fit.status}"
-        )
+        _debug(f"ranked n {model.n_glass:.2f} cost {cost:.3f} nfev {fit.nfev} status {fit.status}")
         if best is None or cost < best[0]:
             best = (cost, fit)
     if best is None:
-        raise CalibrationError("no start of the raytrace model converges on the pixels")
-    return best[1]
+        raise CalibrationError("no start of the raytrace model traces the corners")
+    fit = best[1]
+    if "n_glass" in ctx.config.fixed:
+        return fit
+    fit = ctx.refine(fit.model.with_config(fixed=ctx.config.fixed), views, fit.rvecs,
+                     fit.tvecs, fit.state)  # fmt: skip
+    _debug(f"glass freed: n {fit.model.n_glass:.3f} cost {_pixel_cost(fit, views):.3f}")
+    return fit
 
 
 def _pixel_cost(fit, obs: Observations) -> float:
