@@ -300,7 +300,6 @@ def main(argv=None) -> int:
             print(_row(r), flush=True)
     results = [done[s] for s in seeds if s in done]
     body = _summarise(results, report, "1-2" if args.quick else args.designs)
-    print(body)
     return report.finish({"designs": body})
 
 
