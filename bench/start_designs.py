@@ -2,13 +2,16 @@
 
 Usage::
 
-    python bench/start_designs.py [--seeds 1-40] [--noise 0.04] [--free n_glass,k3] [--truth]
+    python bench/start_designs.py [--seeds 1-40] [--noise 0.04] [--free n_glass,k3]
+        [--fixed k3,p1,p2] [--truth] [--from-truth] [--n-glass 1.5168]
 
 For each design seed (``tests/solvers/design_data.py``): corners of 3 boards x 12 poses
 projected with Gaussian noise by the design's truth (``--truth``: the simulator's design
 space ``simulate.design`` and its own truth optics; else a random ``RaytraceModel``),
 then ``calibrate('pinhole')`` and ``calibrate('raytrace', start=pinhole)`` from images
-alone. Prints one row per design:
+alone (``--from-truth``: seeded with the drawn design itself, which tells whether the
+model family fits, e.g. with ``--n-glass 1.5168 --fixed k3,p1,p2,n_glass``: a glass
+held at N-BK7). Prints one row per design:
 the design, the raytrace RMS over the noise RMS (detected minus true), the pinhole's,
 the time of both calibrations (and as a ratio to ``cv2.stereoCalibrate`` on the same
 detections, timed just before, which the machine's load affects alike), and the error
@@ -18,6 +21,7 @@ of a failed one. Nothing is written.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -27,7 +31,9 @@ sys.path.insert(0, str(ROOT))  # for tests.solvers.design_data
 sys.path.insert(0, str(ROOT / "bench"))  # for _common
 
 
-def run_one(seed: int, noise: float, options=None, truth_optics: bool = False) -> dict:
+def run_one(
+    seed: int, noise: float, options=None, truth_optics: bool = False, from_truth: bool = False
+) -> dict:
     from tests.solvers.design_data import design_views, draw_design, truth_design_views
 
     from endomeasure.errors import EndomeasureError
@@ -42,6 +48,8 @@ def run_one(seed: int, noise: float, options=None, truth_optics: bool = False) -
         data = design_views(design, seed, noise_px=noise)
         size, split = design.truth.config.image_size, design.truth.config.split
         summary, n_true = design.summary, design.truth.n_glass
+        if from_truth:  # the design itself as the user's seed: is the model family enough?
+            options = dataclasses.replace(options, seed=design.truth.to_dict())
     from _common import stereo_calibrate_peer
 
     row = dict(seed=seed, design=summary, noise=data.noise_rms_px, n_true=n_true)
@@ -80,15 +88,18 @@ def main() -> None:
     parser.add_argument("--free", default="", help="comma list of parameters to free")
     parser.add_argument("--fixed", default=None, help="comma list of the parameters held")
     parser.add_argument("--truth", action="store_true", help="simulate.design + truth optics")
+    parser.add_argument("--from-truth", action="store_true", help="seed with the drawn truth")
+    parser.add_argument("--n-glass", type=float, default=None, help="the glass index to set")
     args = parser.parse_args()
     from endomeasure.solvers.calibrate import CalibrationOptions
 
     free = frozenset(filter(None, args.free.split(",")))
     fixed = None if args.fixed is None else frozenset(filter(None, args.fixed.split(",")))
-    options = CalibrationOptions(free=free, fixed=fixed)
+    values = {} if args.n_glass is None else {"n_glass": args.n_glass}
+    options = CalibrationOptions(free=free, fixed=fixed, values=values)
     rows = []
     for seed in _seeds(args.seeds):
-        row = run_one(seed, args.noise, options, args.truth)
+        row = run_one(seed, args.noise, options, args.truth, args.from_truth)
         rows.append(row)
         ratio = row.get("ratio", float("nan"))
         print(

@@ -95,6 +95,9 @@ lens ray meets its front face: a prism most of whose depth is glass, and a thin 
 (physically the rear face must lie before every front-face hit; the fits move it)."""
 RANK_CORNERS_PER_HALF = 4
 RAY_FIT_NFEV = 60
+RANKED_PER_GLASS = 2
+"""Backward fits of each glass refined on the pixels: the backward cost ranks the
+candidates of one glass only roughly."""
 PIXEL_CORNERS_PER_HALF = 8
 """Corners per image and half on which the surviving candidates are refined with every
 board pose and ranked by pixel cost: every view at a fraction of the full fit's cost,
@@ -148,21 +151,26 @@ def _plane_fit(pinhole: PinholeModel, obs: Observations, n: float, cx: float, fx
 
 
 def _analytic_start(
-    pinhole: PinholeModel, obs: Observations, n: float, cx: float, rear_fraction: float
+    pinhole: PinholeModel,
+    obs: Observations,
+    n: float,
+    cx: float,
+    rear_fraction: float,
+    distortion: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``raytrace`` parameters and ``T_raytrace_left`` (R, t) of one candidate.
 
     Notes
     -----
     ``fx = fy`` (square pixels; a prism magnifies only across its wedge, so ``fy`` is
-    the virtual cameras'), the radial distortion the virtual cameras' mean (the lens's
-    dominates theirs); the lens axis and the front-face tilts from the 2-D fit
-    :func:`_plane_fit`, the rear face perpendicular to the axis; the lens centre midway
-    between the virtual centres; the apex ``z`` from the virtual centres' spread (a
-    prism at ``z`` shifts a virtual centre by about ``z tan(delta)``) and on the ray of
-    the split column, so that it images there; the rear face at ``rear_fraction`` of the
-    nearest depth where an observed lens ray meets its front face (the glass must lie
-    between the faces over the whole field).
+    the virtual cameras'); the radial distortion none or the virtual cameras' mean (the
+    lens's dominates theirs, but a wide prism field bends it); the lens axis and the
+    front-face tilts from the 2-D fit :func:`_plane_fit`, the rear face perpendicular to
+    the axis; the lens centre midway between the virtual centres; the apex ``z`` from
+    the virtual centres' spread (a prism at ``z`` shifts a virtual centre by about
+    ``z tan(delta)``) and on the ray of the split column, so that it images there; the
+    rear face at ``rear_fraction`` of the nearest depth where an observed lens ray meets
+    its front face (the glass must lie between the faces over the whole field).
     """
     names = RaytraceModel.PARAM_NAMES
     split = pinhole.config.split
@@ -189,8 +197,8 @@ def _analytic_start(
         raise ValueError("the front faces do not lie in front of the lens")
     values = dict(
         fx=fx, fy=fy, cx=cx, cy=cy, k3=0.0, p1=0.0, p2=0.0,
-        k1=0.5 * (pinhole.left_k1 + pinhole.right_k1),
-        k2=0.5 * (pinhole.left_k2 + pinhole.right_k2),
+        k1=0.5 * (pinhole.left_k1 + pinhole.right_k1) if distortion else 0.0,
+        k2=0.5 * (pinhole.left_k2 + pinhole.right_k2) if distortion else 0.0,
         rear_a=0.0, rear_b=0.0, rear_d=rear_fraction * z_glass,
         left_a=tilts[0], left_b=0.0, left_d=float(faces["left"] @ apex),
         right_a=tilts[1], right_b=0.0, right_d=float(faces["right"] @ apex),
@@ -323,15 +331,17 @@ def _glasses(ctx: StartContext) -> tuple[float, ...]:
 
 
 def _candidates(ctx: StartContext, pinhole: PinholeModel):
-    """The analytic starts to try: every glass of :func:`_glasses` and rear-face depth,
-    the lens axis on the split column (the apex on the axis: the backward fit moves it,
-    and a start on the sensor centre reaches the same fits)."""
+    """The analytic starts to try: every glass of :func:`_glasses`, rear-face depth and
+    distortion start, the lens axis on the split column (the apex on the axis: the
+    backward fit moves it, and a start on the sensor centre reaches the same fits)."""
     for n in _glasses(ctx):
         for fraction in REAR_FRACTIONS:
-            try:
-                yield _analytic_start(pinhole, ctx.obs, n, ctx.config.split - 0.5, fraction)
-            except (ValueError, np.linalg.LinAlgError):
-                continue
+            for distortion in (False, True):
+                try:
+                    yield _analytic_start(pinhole, ctx.obs, n, ctx.config.split - 0.5,
+                                          fraction, distortion)  # fmt: skip
+                except (ValueError, np.linalg.LinAlgError):
+                    continue
 
 
 def _searched(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
@@ -339,7 +349,7 @@ def _searched(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
 
     Every candidate is fitted by backward traces to a few corners of every view
     (:func:`_ray_fit`, glass held). That cost cannot tell the glasses apart (the pinhole
-    pair's own model error limits it), so the best of each glass is refined on the
+    pair's own model error limits it), so the best few of each glass are refined on the
     pixels of a few corners of every view with its board poses (from
     ``T_raytrace_left T_left_board``) and its glass still held, and ranked by that
     cost, the calibration's own; the winner is refined once more with the glass free
@@ -351,20 +361,26 @@ def _searched(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
     held = ctx.config.with_fixed(set(ctx.config.fixed) | {"n_glass"})
     rows = _rank_rows(obs, RANK_CORNERS_PER_HALF)
     sub, P_sub = _subset(obs, rows), P_left[rows]
-    best_of_glass = {}
+    of_glass = {}
     for params, R_t, t_t in _candidates(ctx, pinhole):
         try:
             model = RaytraceModel(params, held)
         except ValueError:
             continue
         fit = _ray_fit(model, R_t, t_t, sub, P_sub, RAY_FIT_NFEV)
-        n = float(params[model.index("n_glass")])
-        if math.isfinite(fit[3]) and (n not in best_of_glass or fit[3] < best_of_glass[n][3]):
-            best_of_glass[n] = fit
-    _debug(f"ray fits: {[(n, round(f[3], 2)) for n, f in best_of_glass.items()]}")
+        if math.isfinite(fit[3]):
+            of_glass.setdefault(float(params[model.index("n_glass")]), []).append(fit)
+    ranked = []
+    for fits in of_glass.values():
+        distinct = []  # candidates that reached the same fit count once
+        for f in sorted(fits, key=lambda f: f[3]):
+            if not any(abs(f[3] - d[3]) <= 0.01 * d[3] for d in distinct):
+                distinct.append(f)
+        ranked.extend(distinct[:RANKED_PER_GLASS])
+    _debug(f"ray fits: {[(round(f[0].n_glass, 2), round(f[3], 2)) for f in ranked]}")
     views = _subset(obs, _rank_rows(obs, PIXEL_CORNERS_PER_HALF))
     best = None
-    for model, R_t, t_t, _ in best_of_glass.values():
+    for model, R_t, t_t, _ in ranked:
         rv = rotation_vector(R_t @ rotation_matrix(rvecs))
         tv = tvecs @ R_t.T + t_t
         try:
@@ -377,18 +393,22 @@ def _searched(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
             best = (cost, fit)
     if best is None:
         raise CalibrationError("no start of the raytrace model traces the corners")
-    fit = best[1]
+    cost, fit = best
     if "n_glass" in ctx.config.fixed:
         return fit
-    fit = ctx.refine(fit.model.with_config(fixed=ctx.config.fixed), views, fit.rvecs,
-                     fit.tvecs, fit.state)  # fmt: skip
-    _debug(f"glass freed: n {fit.model.n_glass:.3f} cost {_pixel_cost(fit, views):.3f}")
-    return fit
+    try:
+        freed = ctx.refine(fit.model.with_config(fixed=ctx.config.fixed), views, fit.rvecs,
+                           fit.tvecs)  # fmt: skip
+    except CalibrationError:
+        return fit
+    freed_cost = _pixel_cost(freed, views)
+    _debug(f"glass freed: n {freed.model.n_glass:.3f} cost {freed_cost:.3f}")
+    return freed if freed_cost <= cost else fit
 
 
 def _pixel_cost(fit, obs: Observations) -> float:
     """RMS pixel residual of a fit over its observations (a failed corner costs 1e3 px)."""
-    projector = fit.model.projector(obs.half, fit.state)
+    projector = fit.model.projector(obs.half)
     R = rotation_matrix(fit.rvecs)[obs.image]
     P = np.einsum("nij,nj->ni", R, obs.board_points) + fit.tvecs[obs.image]
     q, ok = projector.project(fit.model, P)
