@@ -13,8 +13,11 @@ Fermat least-optical-path pixel), not against the numpy functions.
 All kernels use numba's ``error_model="numpy"``: a division by zero gives inf/NaN (and
 then a status), never an exception out of vectorised code.
 
-Face arrays are ``float64[8]``: rear normal (3), rear distance, front normal (3), front
-distance, all in the camera frame (mm).
+Face arrays are ``float64[10]``: rear normal (3), rear distance, front normal (3), front
+distance, all in the camera frame (mm), then the entrance pupil's coefficients ``e1, e2``
+(mm): the ray of lens coordinates ``(x, y)`` starts on the axis at
+``z = e1 theta^2 + e2 theta^4``, ``theta = atan(hypot(x, y))`` its field angle (see
+``raytrace``).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ _BEHIND = int(Status.BEHIND)
 _NOT_CONVERGED = int(Status.NOT_CONVERGED)
 _OUTSIDE = int(Status.OUTSIDE_HALF)
 _MAX_HALVINGS = 12
+_PULL_IN_STEPS = 10  # bisections towards a traceable start: 1/1024 of the segment
 # Central-difference step in normalised lens coordinates for d(offset)/d(x, y): truncation
 # error ~h^2 (1e-14), rounding ~1e-16/h (1e-9 relative).
 _JACOBIAN_STEP = 1e-7
@@ -54,16 +58,24 @@ def _refract(dx, dy, dz, nx, ny, nz, eta):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _trace(x, y, faces, n_glass):
-    """Trace lens coordinates (x, y) through the prism: (ox, oy, oz, dx, dy, dz, status)."""
-    inv = 1.0 / math.sqrt(x * x + y * y + 1.0)
+    """Trace lens coordinates (x, y) through the prism: (ox, oy, oz, dx, dy, dz, status).
+
+    The ray leaves the entrance pupil, on the axis at ``z0 = e1 theta^2 + e2 theta^4``
+    (exactly 0, and the arithmetic unchanged, when both coefficients are 0)."""
+    r2 = x * x + y * y
+    inv = 1.0 / math.sqrt(r2 + 1.0)
     d0x, d0y, d0z = x * inv, y * inv, inv
-    t0 = faces[3] / (d0x * faces[0] + d0y * faces[1] + d0z * faces[2])
+    z0 = 0.0
+    if faces[8] != 0.0 or faces[9] != 0.0:  # no arctangent for a fixed pupil
+        theta2 = math.atan(math.sqrt(r2)) ** 2
+        z0 = theta2 * (faces[8] + theta2 * faces[9])
+    t0 = (faces[3] - z0 * faces[2]) / (d0x * faces[0] + d0y * faces[1] + d0z * faces[2])
     if not t0 > 0.0:
         return _NAN, _NAN, _NAN, _NAN, _NAN, _NAN, _BEHIND
     gx, gy, gz, ok = _refract(d0x, d0y, d0z, faces[0], faces[1], faces[2], 1.0 / n_glass)
     if not ok:
         return _NAN, _NAN, _NAN, _NAN, _NAN, _NAN, _TIR
-    p1x, p1y, p1z = t0 * d0x, t0 * d0y, t0 * d0z
+    p1x, p1y, p1z = t0 * d0x, t0 * d0y, z0 + t0 * d0z
     t1 = (faces[7] - (p1x * faces[4] + p1y * faces[5] + p1z * faces[6])) / (
         gx * faces[4] + gy * faces[5] + gz * faces[6]
     )
@@ -79,7 +91,7 @@ def _trace(x, y, faces, n_glass):
 def trace_rays(x, y, faces, n_glass, prism, origins, directions, status):
     """Trace many lens coordinates into ``origins (N,3)``, ``directions (N,3)``, ``status (N,)``.
 
-    ``faces`` (K, 8) and ``n_glass`` (K,) hold K prisms; ``prism`` (N,) int names each
+    ``faces`` (K, 10) and ``n_glass`` (K,) hold K prisms; ``prism`` (N,) int names each
     ray's (empty: prism 0 for all).
     """
     per_ray = prism.shape[0] > 0
@@ -263,16 +275,52 @@ def _broyden(x, y, ex, ey, s, b11, b12, b21, b22, faces, n_glass, px, py, pz, to
     return x, y, s, result
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _pull_in(x, y, inner, faces, n_glass, px, py, pz):
+    """A traceable start on the segment from an untraceable one ``(x, y)`` to ``inner``.
+
+    Near the field edge the start map may land beyond the critical angle or off a face
+    although the solution itself traces: bisection along the segment keeps the traceable
+    point nearest the original start (the solution usually lies near that edge too).
+    Returns ``(x, y, ex, ey, s, status)`` as ``_offset`` does, the status not OK when
+    even ``inner`` does not trace.
+    """
+    ex, ey, s, st = _offset(inner[0], inner[1], faces, n_glass, px, py, pz)
+    if st != _OK:
+        return x, y, ex, ey, s, st
+    good, bad = 0.0, 1.0
+    bx, by, bex, bey, bs = inner[0], inner[1], ex, ey, s
+    for _ in range(_PULL_IN_STEPS):
+        t = 0.5 * (good + bad)
+        tx, ty = inner[0] + t * (x - inner[0]), inner[1] + t * (y - inner[1])
+        ex, ey, s, st = _offset(tx, ty, faces, n_glass, px, py, pz)
+        if st == _OK:
+            good = t
+            bx, by, bex, bey, bs = tx, ty, ex, ey, s
+        else:
+            bad = t
+    return bx, by, bex, bey, bs, _OK
+
+
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _pixel(x, y, result, lens, r2_max):
     """The pixel ``(u, v)`` of a converged aim, NaN unless OK, and the status
     (``OUTSIDE_HALF`` beyond the distortion's fold-back radius ``r2_max``)."""
     if result != _OK:
         return _NAN, _NAN, result
+    if lens[12] != 0.0 or lens[13] != 0.0:  # image-side decentering: x + T(h(x)) first
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (lens[4] + r2 * (lens[5] + r2 * lens[8]))
+        radial /= 1.0 + r2 * (lens[9] + r2 * (lens[10] + r2 * lens[11]))
+        hx, hy = x * radial, y * radial
+        h2 = hx * hx + hy * hy
+        x, y = (x + 2.0 * lens[12] * hx * hy + lens[13] * (h2 + 2.0 * hx * hx),
+                y + lens[12] * (h2 + 2.0 * hy * hy) + 2.0 * lens[13] * hx * hy)  # fmt: skip
     r2 = x * x + y * y
     if r2 > r2_max:
         return _NAN, _NAN, _OUTSIDE
     radial = 1.0 + r2 * (lens[4] + r2 * (lens[5] + r2 * lens[8]))
+    radial /= 1.0 + r2 * (lens[9] + r2 * (lens[10] + r2 * lens[11]))  # rational: exact 1 if 0
     xd = x * radial + 2.0 * lens[6] * x * y + lens[7] * (r2 + 2.0 * x * x)
     yd = y * radial + lens[6] * (r2 + 2.0 * y * y) + 2.0 * lens[7] * x * y
     return lens[0] * xd + lens[2], lens[1] * yd + lens[3], result
@@ -280,7 +328,7 @@ def _pixel(x, y, result, lens, r2_max):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def aim_rays(
-    points, faces, n_glass, centre, exponents, coeffs, lut, lut_origin, lut_step,
+    points, faces, n_glass, centre, exponents, coeffs, lut, lut_origin, lut_step, inner,
     start_xy, tol_x, tol_y, max_iter, xy, status, dxy_dp, lens, r2_max, pixels,
 ):  # fmt: skip
     """Ray aiming for many points by Broyden's method (see ``raytrace.aim_rays``).
@@ -288,13 +336,17 @@ def aim_rays(
     Parameters
     ----------
     points : float64[N, 3]
-    faces : float64[8]
+    faces : float64[10]
     centre : float64[3]
         Virtual centre of the half used by the start map.
     exponents : int64[F, 3], coeffs : float64[F, 2]
         Polynomial start map ``(wx, wy, q) -> (x, y)``, used where the table has no value.
     lut, lut_origin, lut_step
         Start table (see ``_lut_start``); an empty table (K < 2) disables it.
+    inner : float64[2]
+        Lens coordinates of a ray well inside the half's traceable field: a start that
+        cannot be traced (beyond the critical angle, near the field edge) is pulled
+        towards it (see ``_pull_in``).
     start_xy : float64[N, 2] or float64[0, 2]
         Warm starts (e.g. the previous solution during an optimisation); rows with NaN,
         or an empty array, start from the table. The inverse Jacobian always starts from
@@ -306,9 +358,9 @@ def aim_rays(
     dxy_dp : float64[N, 2, 3] or float64[0, 2, 3] (output)
         Where given, the derivative of the lens coordinates with respect to the point,
         by the implicit-function rule (see ``_lens_jacobian``).
-    lens : float64[9], r2_max : float, pixels : float64[N, 2] or float64[0, 2] (output)
+    lens : float64[14], r2_max : float, pixels : float64[N, 2] or float64[0, 2] (output)
         Where ``pixels`` is given, the pixel of each solution through the lens
-        ``fx fy cx cy k1 k2 p1 p2 k3`` (Brown distortion, as
+        ``fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6 p1_image p2_image`` (as
         :func:`endomeasure.geometry.distortion.distort`); a solution beyond the fold-back
         radius ``r2_max`` of the distortion is ``OUTSIDE_HALF``.
     """
@@ -324,6 +376,7 @@ def aim_rays(
     want_jac = dxy_dp.shape[0] > 0
     want_pixels = pixels.shape[0] > 0
     warm = start_xy.shape[0] > 0
+    inverse = np.empty((2, 3))  # scratch: a start's inverse Jacobian, for the retry
     for i in range(points.shape[0]):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         xy[i, 0] = _NAN
@@ -356,10 +409,21 @@ def aim_rays(
         if st != _OK:
             ex, ey, s, st = _offset(x, y, faces, n_glass, px, py, pz)
         if st != _OK:
+            x, y, ex, ey, s, st = _pull_in(x, y, inner, faces, n_glass, px, py, pz)
+        if st != _OK:
             status[i] = st
             continue
+        x0, y0, ex0, ey0, s0 = x, y, ex, ey, s
         x, y, s, result = _broyden(x, y, ex, ey, s, b11, b12, b21, b22, faces, n_glass,
                                    px, py, pz, tol_x, tol_y, max_iter)  # fmt: skip
+        if result == _NOT_CONVERGED:  # a poor start map near the field edge: once more, from the
+            # same start with its own inverse Jacobian (central differences of the trace)
+            _lens_jacobian(x0, y0, faces, n_glass, px, py, pz, _JACOBIAN_STEP, inverse)
+            if math.isfinite(inverse[0, 0] + inverse[0, 1] + inverse[1, 0] + inverse[1, 1]):
+                x, y, s, result = _broyden(
+                    x0, y0, ex0, ey0, s0, inverse[0, 0], inverse[0, 1], inverse[1, 0],
+                    inverse[1, 1], faces, n_glass, px, py, pz, tol_x, tol_y, max_iter,
+                )  # fmt: skip
         if want_pixels:
             pixels[i, 0], pixels[i, 1], result = _pixel(x, y, result, lens, r2_max)
         status[i] = result

@@ -318,14 +318,29 @@ class CameraModel(abc.ABC):
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> CameraModel:
+        """The model of a :meth:`to_dict` description, also one written by an earlier
+        version: values are matched by name, and extension parameters the description
+        lacks (``EXTENSIONS``, all neutral at 0) are 0 and held fixed, so the stored
+        model projects as it did. Any other mismatch is a ValueError."""
         if data.get("model") != cls.NAME:
             raise ValueError(f"expected a {cls.NAME!r} model, got {data.get('model')!r}")
         names = tuple(data.get("param_names", cls.PARAM_NAMES))
-        if names != cls.PARAM_NAMES:
+        values = np.asarray(data["params"], dtype=np.float64).reshape(-1)
+        config = ModelConfig.from_dict(data["config"])
+        if names == cls.PARAM_NAMES:
+            return cls(values, config)
+        extensions = {name for group in cls.EXTENSIONS for name in group}
+        missing = set(cls.PARAM_NAMES) - set(names)
+        if (
+            len(set(names)) != len(names)
+            or values.shape != (len(names),)
+            or not set(names) <= set(cls.PARAM_NAMES)
+            or not missing <= extensions
+        ):
             raise ValueError(f"parameter names of the {cls.NAME} model do not match this version")
-        return cls(
-            np.asarray(data["params"], dtype=np.float64), ModelConfig.from_dict(data["config"])
-        )
+        given = dict(zip(names, values.tolist(), strict=True))
+        params = np.array([given.get(name, 0.0) for name in cls.PARAM_NAMES])
+        return cls(params, config.with_fixed(config.fixed | missing))
 
     # ----- the two questions ----------------------------------------------------------
     def rays(

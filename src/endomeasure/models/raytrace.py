@@ -1,8 +1,7 @@
 """``raytrace``: the paper's Model 2, a lens camera behind a biprism, by vector Snell's law.
 
-One real camera (``fx fy cx cy`` and lens distortion ``k1 k2``, optionally ``k3 p1
-p2``, held fixed at zero by default) looks through a prism described by three planes in
-the camera frame (SPEC 4.2):
+One real camera looks through a prism described by three planes in the camera frame
+(SPEC 4.2):
 
 - the rear face, shared by both halves, where rays enter the glass;
 - the left and right front faces, where the rays of each half leave it.
@@ -12,6 +11,20 @@ optical axis, ``n = (tan a, tan b, 1) / |(tan a, tan b, 1)|`` (regular for faces
 perpendicular to the axis, unlike spherical angles), and ``d`` in mm. ``n_glass`` is
 the prism's refractive index, held fixed by default because it is strongly correlated
 with the face tilts.
+
+The camera is ``fx fy cx cy`` and lens distortion ``k1 k2`` (the paper's), with the
+extensions a real endoscope lens may need, all 0 and held fixed by default
+(``RaytraceModel.EXTENSIONS``, freed by calibration only when the data call for them):
+
+- ``k3`` and the tangential ``p1 p2`` (Brown-Conrady, OpenCV order);
+- ``k4 k5 k6``, the denominator of OpenCV's rational radial factor: strong barrel
+  distortion defined from pixel to ray has no short polynomial inverse;
+- ``p1_image p2_image``, decentering defined on the image side: the first-order inverse
+  of a pixel-to-ray map's tangential terms (:func:`endomeasure.geometry.distortion.distort`);
+- ``e1 e2`` (mm), an entrance pupil that moves along the axis with the field angle
+  ``theta`` of the lens ray: the ray starts at ``(0, 0, e1 theta^2 + e2 theta^4)``, as
+  in CAHVORE's entrance-pupil terms (Gennery 2006); no constant term, which the face
+  distances absorb.
 
 Backward tracing (:meth:`RaytraceModel.rays`) is closed form. Forward projection has
 none (the faces are not parallel), so :meth:`RaytraceModel.project` aims rays: it solves
@@ -34,8 +47,9 @@ from endomeasure.geometry.distortion import (
 from endomeasure.models import _prism_kernels
 from endomeasure.models.base import FD_STEP_PARAM, CameraModel, ParamBatch, finite_difference
 from endomeasure.models.lens import (
-    DISTORTION_NAMES,
-    LENS_NAMES,
+    FULL_LENS_NAMES,
+    IMAGE_TANGENTIAL_NAMES,
+    RATIONAL_NAMES,
     lens_jacobians,
     lens_units,
 )
@@ -94,7 +108,13 @@ class Aim(NamedTuple):
     pixels: np.ndarray | None  # (N, 2) px, when asked for
 
 
-_SHARED_TRACE_PARAMS = frozenset({"rear_a", "rear_b", "rear_d", "n_glass"})
+PUPIL_NAMES = ("e1", "e2")
+"""The entrance pupil's shift along the axis with the field angle theta,
+``z = e1 theta^2 + e2 theta^4`` (mm)."""
+DISTORTION_NAMES = FULL_LENS_NAMES[4:]
+"""The lens's distortion coefficients in :mod:`endomeasure.geometry.distortion` order."""
+
+_SHARED_TRACE_PARAMS = frozenset({"rear_a", "rear_b", "rear_d", "n_glass", *PUPIL_NAMES})
 _TRACE_PARAMS = {half: _SHARED_TRACE_PARAMS | {f"{half.label}_{k}" for k in "abd"} for half in Half}
 """The parameters a half's prism trace depends on (the other front face does not count)."""
 
@@ -108,11 +128,13 @@ class _AimMap(NamedTuple):
     lut: np.ndarray  # (K, NY, NX, 2): lens coordinates on a regular (q, wy, wx) grid
     lut_origin: np.ndarray  # (3,): wx, wy, q of lut[0, 0, 0]
     lut_step: np.ndarray  # (3,): grid steps in wx, wy, q
+    inner: np.ndarray  # (2,): lens coordinates of a ray well inside the half's traceable field
 
 
 def _faces(params: np.ndarray, half: Half) -> np.ndarray:
-    """Rear and front face of a half for parameter vectors (..., 19), packed for the
-    kernels: rear normal, rear distance, front normal, front distance, shape (..., 8)."""
+    """Rear and front face of a half for parameter vectors (..., P), packed for the
+    kernels: rear normal, rear distance, front normal, front distance and the pupil's
+    ``e1 e2``, shape (..., 10)."""
 
     def col(name):
         return RaytraceModel.column(params, name)
@@ -120,7 +142,8 @@ def _faces(params: np.ndarray, half: Half) -> np.ndarray:
     rear = plane_normal(col("rear_a"), col("rear_b"))
     front = plane_normal(col(f"{half.label}_a"), col(f"{half.label}_b"))
     d_rear, d_front = np.asarray(col("rear_d")), np.asarray(col(f"{half.label}_d"))
-    return np.concatenate([rear, d_rear[..., None], front, d_front[..., None]], axis=-1)
+    pupil = [np.asarray(col(name))[..., None] for name in PUPIL_NAMES]
+    return np.concatenate([rear, d_rear[..., None], front, d_front[..., None], *pupil], axis=-1)
 
 
 def _trace(
@@ -130,7 +153,7 @@ def _trace(
     n_glass: np.ndarray,
     prism: np.ndarray | None = None,
 ) -> PrismTrace:
-    """Trace lens coordinates (N,) through prisms ``faces`` (K, 8), ``n_glass`` (K,):
+    """Trace lens coordinates (N,) through prisms ``faces`` (K, 10), ``n_glass`` (K,):
     ``prism`` (N,) names each ray's (None: the first for all); see ``_prism_kernels``."""
     x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1)
     y = np.ascontiguousarray(y, dtype=np.float64).reshape(-1)
@@ -211,7 +234,8 @@ def _aimed_at(model, xy: np.ndarray, points: np.ndarray, half: Half) -> Aim:
 
 
 class RaytraceModel(CameraModel):
-    """Lens camera + biprism traced with vector Snell's law (19 parameters)."""
+    """Lens camera + biprism traced with vector Snell's law (26 parameters; see the
+    module docstring). The first 19 are the earlier version's, in its order."""
 
     NAME: ClassVar[str] = "raytrace"
     PARAM_NAMES: ClassVar[tuple[str, ...]] = (
@@ -220,6 +244,7 @@ class RaytraceModel(CameraModel):
         "left_a", "left_b", "left_d",
         "right_a", "right_b", "right_d",
         "n_glass",
+        "k4", "k5", "k6", "e1", "e2", "p1_image", "p2_image",
     )  # fmt: skip
     GROUPS: ClassVar[dict[str, slice]] = {
         # no "distortion" group: k3 sits before p1 p2 here, not in OpenCV's order
@@ -228,13 +253,18 @@ class RaytraceModel(CameraModel):
         "right_face": slice(15, 18),
     }
     PARAM_UNITS: ClassVar[dict[str, str]] = {
-        **lens_units(),
+        **lens_units(names=FULL_LENS_NAMES),
+        **{name: "mm" for name in PUPIL_NAMES},
         **{f"{face}_{k}": "mm" if k == "d" else "rad"
            for face in ("rear", "left", "right") for k in "abd"},
         "n_glass": "1",
     }  # fmt: skip
-    DEFAULT_FIXED: ClassVar[frozenset[str]] = frozenset({"k3", "p1", "p2", "n_glass"})
-    EXTENSIONS: ClassVar[tuple[tuple[str, ...], ...]] = (("k3",), ("p1", "p2"))
+    DEFAULT_FIXED: ClassVar[frozenset[str]] = frozenset(
+        {"k3", "p1", "p2", "n_glass", *RATIONAL_NAMES, *PUPIL_NAMES, *IMAGE_TANGENTIAL_NAMES}
+    )
+    EXTENSIONS: ClassVar[tuple[tuple[str, ...], ...]] = (
+        ("k3",), ("k4", "k5"), PUPIL_NAMES, ("p1", "p2"), IMAGE_TANGENTIAL_NAMES, ("k6",),
+    )  # fmt: skip
     SEEDED_FROM: ClassVar[str | None] = "pinhole"
     PROJECTOR: ClassVar[type[Projector]] = _AimingProjector
 
@@ -263,14 +293,35 @@ class RaytraceModel(CameraModel):
         return plane_normal(a, b), d
 
     def lens(self) -> np.ndarray:
-        """The lens camera ``fx fy cx cy k1 k2 p1 p2 k3`` (:data:`LENS_NAMES` order), (9,)."""
-        return np.array([getattr(self, n) for n in LENS_NAMES])
+        """The lens camera ``fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6 p1_image p2_image``
+        (:data:`~endomeasure.models.lens.FULL_LENS_NAMES` order), (14,)."""
+        return np.array([getattr(self, n) for n in FULL_LENS_NAMES])
 
-    def _lens_coeffs(self) -> tuple[float, float, float, float, float]:
+    def _lens_coeffs(self) -> tuple[float, ...]:
         return tuple(getattr(self, k) for k in DISTORTION_NAMES)
 
+    def _lens_needed(self, names) -> np.ndarray:
+        """:meth:`lens` cut to the shortest form (9, 12 or 14 terms) that holds every
+        non-zero term and every parameter in ``names``: the shorter forms' Jacobians are
+        the same numbers, computed with less work."""
+        lens = self.lens()
+        needed = {n for n, v in zip(FULL_LENS_NAMES, lens, strict=True) if v != 0.0}
+        needed |= set(names)
+        for size in (9, 12):
+            if not needed & set(FULL_LENS_NAMES[size:]):
+                return lens[:size]
+        return lens
+
+    def fold_back_radius2(self) -> float:
+        """The largest squared undistorted radius where the lens's radial map still grows
+        (:func:`~endomeasure.geometry.distortion.max_monotonic_radius2`)."""
+        if "r2_max" not in self._cache:
+            radial = (getattr(self, k) for k in ("k1", "k2", "k3", *RATIONAL_NAMES))
+            self._cache["r2_max"] = max_monotonic_radius2(*radial)
+        return self._cache["r2_max"]
+
     def faces_array(self, half: Half) -> np.ndarray:
-        """Rear and front face of a half packed for the compiled kernels, float64[8]."""
+        """Rear and front face of a half (and the pupil) packed for the kernels, float64[10]."""
         half = Half.parse(half)
         key = ("faces", half)
         if key not in self._cache:
@@ -307,9 +358,10 @@ class RaytraceModel(CameraModel):
 
     def _rays_rows(self, pixels, half, batch):
         """Rays with a parameter vector per pixel (``batch``; index None: its only vector)."""
-        p = {k: batch.per_item(self.index(k)) for k in LENS_NAMES}
+        p = {k: batch.per_item(self.index(k)) for k in FULL_LENS_NAMES}
         one = batch.table.shape[0] == 1
-        r2 = max_monotonic_radius2(*(self.column(batch.table, k) for k in ("k1", "k2", "k3")))
+        radial = ("k1", "k2", "k3", *RATIONAL_NAMES)
+        r2 = max_monotonic_radius2(*(self.column(batch.table, k) for k in radial))
         und = undistort(
             (pixels[:, 0] - p["cx"]) / p["fx"],
             (pixels[:, 1] - p["cy"]) / p["fy"],
@@ -357,12 +409,12 @@ class RaytraceModel(CameraModel):
         dq_dp = self._point_jacobian(aim)
         good = np.isfinite(aim.x) & np.isfinite(aim.y)
         x, y = np.where(good, aim.x, 0.0), np.where(good, aim.y, 0.0)
-        dq_dxy, dq_dlens = lens_jacobians(x, y, self.lens())
-        dq_dparams = np.zeros((points.shape[0], 2, free.size))
         names = [self.PARAM_NAMES[i] for i in free]
-        lens_cols = [k for k, name in enumerate(names) if name in LENS_NAMES]
+        dq_dxy, dq_dlens = lens_jacobians(x, y, self._lens_needed(names))
+        dq_dparams = np.zeros((points.shape[0], 2, free.size))
+        lens_cols = [k for k, name in enumerate(names) if name in FULL_LENS_NAMES]
         dq_dparams[:, :, lens_cols] = dq_dlens[
-            :, :, [LENS_NAMES.index(names[k]) for k in lens_cols]
+            :, :, [FULL_LENS_NAMES.index(names[k]) for k in lens_cols]
         ]
         prism_cols = [k for k, name in enumerate(names) if name in _TRACE_PARAMS[half]]
         if prism_cols:
@@ -481,6 +533,8 @@ def _fit_aim_map(model: RaytraceModel, half: Half, step: float) -> _AimMap:
     x, y, o, d = x[ok], y[ok], traced.origins[ok], traced.directions[ok]
     if x.size < 50:
         raise ValueError(f"the {half.label} half traces too few valid rays to aim at")
+    middle = np.argmin(np.hypot(x - np.median(x), y - np.median(y)))
+    inner = np.array([x[middle], y[middle]])
     # C minimises the sum of squared distances to all rays: sum(I - d d^T) (C - o) = 0
     proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
     centre = np.linalg.solve(proj.sum(0), np.einsum("nij,nj->i", proj, o))
@@ -503,7 +557,7 @@ def _fit_aim_map(model: RaytraceModel, half: Half, step: float) -> _AimMap:
     coeffs = np.linalg.solve(Fs.T @ Fs, Fs.T @ target) / scale[:, None]
     wx_all, wy_all = np.concatenate(wxs), np.concatenate(wys)
     no_lut = (np.full((1, 1, 1, 2), np.nan, dtype=np.float32), np.zeros(3), np.ones(3))
-    poly = _AimMap(centre, exponents, coeffs, *no_lut)
+    poly = _AimMap(centre, exponents, coeffs, *no_lut, inner)
     return poly._replace(**_build_aim_table(model, half, poly, wx_all, wy_all, step))
 
 
@@ -606,10 +660,10 @@ def aim_rays(
     start = np.empty((0, 2)) if start is None else np.ascontiguousarray(start, dtype=np.float64)
     q = np.empty((points.shape[0] if pixels else 0, 2))  # the kernel NaNs skipped rows
     lens = model.lens()
-    r2_max = max_monotonic_radius2(model.k1, model.k2, model.k3)
+    r2_max = model.fold_back_radius2()
     _prism_kernels.aim_rays(
         points, model.faces_array(half), model.n_glass, aim.centre, aim.exponents, aim.coeffs,
-        aim.lut, aim.lut_origin, aim.lut_step, start,
+        aim.lut, aim.lut_origin, aim.lut_step, aim.inner, start,
         AIM_TOL_PX / model.fx, AIM_TOL_PX / model.fy, AIM_MAX_ITER,
         xy, status, dxy_dp, lens, r2_max, q,
     )  # fmt: skip
