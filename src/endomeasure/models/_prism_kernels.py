@@ -35,7 +35,7 @@ _BEHIND = int(Status.BEHIND)
 _NOT_CONVERGED = int(Status.NOT_CONVERGED)
 _OUTSIDE = int(Status.OUTSIDE_HALF)
 _MAX_HALVINGS = 12
-_PULL_IN_STEPS = 10  # bisections towards a traceable start: 1/1024 of the segment
+_PULL_IN_STEPS = 6  # bisections towards a traceable start: 1/64 of the segment
 # Central-difference step in normalised lens coordinates for d(offset)/d(x, y): truncation
 # error ~h^2 (1e-14), rounding ~1e-16/h (1e-9 relative).
 _JACOBIAN_STEP = 1e-7
