@@ -228,3 +228,22 @@ def test_exotic_preset_is_not_representable_and_keeps_an_approximate_seed(exotic
     truth = exotic.truth_model.named_params()
     assert truth["k1"] == pytest.approx(0.11)  # the same numbers, without the extra effects
     assert truth["n_glass"] == exotic.truth_optics.n_glass
+
+
+def test_a_moving_pupil_is_the_raytrace_models_e1(rng):
+    """The truth's pupil law ``z = shift (theta / theta_edge)^2`` is the model's
+    ``e1 theta^2``: with the pupil moving, the two codes still agree."""
+    data = copy.deepcopy(load_preset("default").data)
+    data["lens"].update(pupil_shift_mm=0.08, pupil_edge_deg=50.0)
+    preset = Preset.from_dict(data)
+    assert preset.raytrace_representable
+    optics, model = preset.truth_optics, preset.truth_model
+    for half in Half:
+        q = _half_pixels(optics, half, rng, 300)
+        a = optics.rays(q, half)
+        ok = a.status == Status.OK
+        points = a.origins[ok] + 20.0 * a.directions[ok]
+        pa, pb = optics.project(points, half), model.project(points, half)
+        both = (pa.status == Status.OK) & (pb.status == Status.OK)
+        assert both.sum() > 250
+        assert np.abs(pa.pixels[both] - pb.pixels[both]).max() < CROSS_CHECK_TOL_PX

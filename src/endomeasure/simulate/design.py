@@ -74,6 +74,8 @@ RANGES: dict[str, Any] = {
     "far_over_near": (3.5, 5.0),
     "f_number": (4.0, 8.0),
     "psf_sigma_px": (0.45, 0.7),
+    "max_defocus_px": 3.0,
+    "max_f_number": 16.0,
     "vignetting_exponent": (1.0, 2.0),
     "apex_band_depth": (0.85, 0.97),
     "read_noise_e": (8.0, 15.0),
@@ -81,7 +83,9 @@ RANGES: dict[str, Any] = {
 """The documented ranges of :func:`draw_design` (uniform unless docs say otherwise)."""
 
 MIN_SQUARE_PX = 9.0
-"""A board's squares are at least this many px wide at the far end of its distances."""
+"""A board's squares are at least this many px wide at the far end of its distances ..."""
+BLUR_SQUARE_SIGMAS = 4.5
+"""... or this many PSF sigmas (at the ends of the working range), if more."""
 BOARD_FILL = 0.7
 """A board's checker area spans at most this fraction of the common field at its near end."""
 RANGE_RATIO = 1.4
@@ -92,6 +96,7 @@ MAX_DARK_FRACTION = 0.02
 of its centre (the middle half of the rows and 60 % of the columns)."""
 MAX_ATTEMPTS = 200
 _LENS_TRIES = 50
+SENSOR_ATTEMPTS = 40
 _GRID = (64, 48)  # pixels per axis checked for TIR and lens folding
 _BOARDS = (("board_s", 8, 6), ("board_m", 6, 5), ("board_l", 6, 5))
 
@@ -419,7 +424,7 @@ def _fit_distance(cfs: list[dict], zs: np.ndarray, board: tuple, square: float) 
     return float(np.interp(square, room[k - 1 : k + 1], zs[k - 1 : k + 1]))
 
 
-def _boards(optics: TruthOptics, near: float, far: float, margin_px: float):
+def _boards(optics: TruthOptics, near: float, far: float, margin_px: float, min_px: float):
     """Three boards and the distances each is detectable at.
 
     The small board fills ``BOARD_FILL`` of the common field at the near end, the large
@@ -427,6 +432,8 @@ def _boards(optics: TruthOptics, near: float, far: float, margin_px: float):
     it, the middle one is their geometric mean. Each board's range runs from where it
     first fits to where its squares shrink to ``MIN_SQUARE_PX`` (within the working
     range); the ranges must overlap so that together they span the working range.
+    ``min_px`` is ``MIN_SQUARE_PX``, or ``BLUR_SQUARE_SIGMAS`` PSF sigmas where the
+    design's blur is wider.
     """
     zs = np.geomspace(near, far, 7)
     cfs = [common_field(optics, float(z), margin_px) for z in zs]
@@ -434,7 +441,7 @@ def _boards(optics: TruthOptics, near: float, far: float, margin_px: float):
     # the small board: as many corners (up to the default's 8 x 6) as fit BOARD_FILL of
     # the common field at the near end with squares RANGE_RATIO x MIN_SQUARE_PX wide
     room_px = BOARD_FILL * np.array([cfs[0]["width_mm"], cfs[0]["height_mm"]]) * focal[0] / near
-    fit = np.floor(room_px / (RANGE_RATIO * MIN_SQUARE_PX)).astype(int) - 1
+    fit = np.floor(room_px / (RANGE_RATIO * min_px)).astype(int) - 1
     cols = int(min(_BOARDS[0][1], fit[0]))
     rows = int(min(_BOARDS[0][2], fit[1], cols - 1))
     if rows < 3:
@@ -448,7 +455,7 @@ def _boards(optics: TruthOptics, near: float, far: float, margin_px: float):
     late = common_field(optics, far / 1.6, margin_px)
     _, lcols, lrows = layouts[-1]
     large = max(
-        MIN_SQUARE_PX * far / focal[-1],
+        min_px * far / focal[-1],
         BOARD_FILL * min(late["width_mm"] / (lcols + 1), late["height_mm"] / (lrows + 1)),
     )
     large = _round2(large, "up")
@@ -457,7 +464,7 @@ def _boards(optics: TruthOptics, near: float, far: float, margin_px: float):
     def board_range(board, square):
         lo = max(near, _fit_distance(cfs, zs, board, square))
         px = focal * square / zs  # square width in px at each sampled distance
-        hi = far if px[-1] >= MIN_SQUARE_PX else float(np.interp(-MIN_SQUARE_PX, -px, zs))
+        hi = far if px[-1] >= min_px else float(np.interp(-min_px, -px, zs))
         if not hi >= 1.2 * lo:
             raise DesignError(f"{board[0]} ({square:.3g} mm squares) fits no range of distances")
         return board, square, lo, hi
@@ -469,7 +476,7 @@ def _boards(optics: TruthOptics, near: float, far: float, margin_px: float):
     _, mcols, mrows = layouts[1]
     k = int(np.argmin(np.abs(zs - hi_small)))
     fits = BOARD_FILL * min(cfs[k]["width_mm"] / (mcols + 1), cfs[k]["height_mm"] / (mrows + 1))
-    seen = MIN_SQUARE_PX * lo_large / float(np.interp(lo_large, zs, focal))
+    seen = min_px * lo_large / float(np.interp(lo_large, zs, focal))
     if not seen <= fits:
         raise DesignError("no middle board bridges the small and the large boards' ranges")
     out[1] = board_range(layouts[1], _round2(np.sqrt(seen * fits)))
@@ -493,6 +500,26 @@ def _targets(boards, scene: dict, charuco_mm: float) -> dict[str, Any]:
     return targets
 
 
+def _focus_and_stop(data: dict, near: float, far: float) -> None:
+    """Best focus at the dioptric middle of the working range (equal blur at both ends),
+    the f-number raised from its draw until the blur circle there is at most
+    ``max_defocus_px`` (up to ``max_f_number``), and the PSF widened by diffraction.
+
+    Notes
+    -----
+    Blur-circle diameter ``c = A fx |1/z - 1/z_f|`` with ``A = fx pitch / N``, so
+    ``N >= fx^2 pitch (1/near - 1/far) / (2 c_max)``; diffraction adds a Gaussian of
+    sigma ``0.42 lambda N / pitch`` (the Airy core, lambda = 0.55 um) in quadrature to
+    the lens's own ``psf_sigma_px``.
+    """
+    lens, pitch_mm = data["lens"], data["sensor"]["pixel_pitch_um"] * 1e-3
+    lens["best_focus_mm"] = round(2.0 / (1.0 / near + 1.0 / far), 3)
+    needed = lens["fx"] ** 2 * pitch_mm * (1.0 / near - 1.0 / far) / (2 * RANGES["max_defocus_px"])
+    lens["f_number"] = round(float(min(RANGES["max_f_number"], max(lens["f_number"], needed))), 2)
+    diffraction = 0.42 * 0.55e-3 * lens["f_number"] / pitch_mm
+    lens["psf_sigma_px"] = round(float(np.hypot(lens["psf_sigma_px"], diffraction)), 3)
+
+
 def _protocol(rng, optics: TruthOptics, apex_z: float, data: dict) -> dict[str, Any]:
     """Working range, illumination, targets and image sets scaled to the optics.
 
@@ -502,13 +529,14 @@ def _protocol(rng, optics: TruthOptics, apex_z: float, data: dict) -> dict[str, 
     baseline = _baseline(optics)
     near = _convergence(optics, baseline) * _u(rng, RANGES["near_over_convergence"])
     far = near * _u(rng, RANGES["far_over_near"])
-    focus = float(np.sqrt(near * far) * _u(rng, (0.7, 0.9)))
-    data["lens"]["best_focus_mm"] = round(focus, 3)
+    _focus_and_stop(data, near, far)
     # the scenes keep boards APEX_CLEARANCE_SIGMAS band sigmas (and a border) clear of the
     # apex image: the common field the boards are sized for keeps the same clearance
     band = Preset(data).apex_band_sigma_px
     margin = max(4.0, APEX_CLEARANCE_SIGMAS * band + BORDER_CLEARANCE_PX)
-    boards, cfs, zs, focal = _boards(optics, near, far, margin)
+    sigma = float(np.max(Preset(data).blur_sigma_px(np.array([near, far]))))
+    min_px = max(MIN_SQUARE_PX, BLUR_SQUARE_SIGMAS * sigma)
+    boards, cfs, zs, focal = _boards(optics, near, far, margin, min_px)
     width = optics.config.image_size[0]
 
     def centre_deg(z):
@@ -573,16 +601,19 @@ def _protocol(rng, optics: TruthOptics, apex_z: float, data: dict) -> dict[str, 
 
 
 def _render_settings(width: int, height: int) -> dict[str, int]:
-    """Supersampling falls with the pixel count so a render's rays stay within a budget."""
+    """Supersampling falls with the pixel count so a render's rays stay within a budget
+    (the larger sensors' PSF spans more pixels, so fewer samples per pixel suffice)."""
     pixels = width * height
-    n = 4 if pixels <= 640 * 512 else 3 if pixels <= 1024 * 768 else 2
+    n = 4 if pixels <= 640 * 512 else 3 if pixels <= 800 * 600 else 2
     return {"supersampling": n, "chunk_rays": 262144}
 
 
 def _draw_once(seed: int, attempt: int) -> dict[str, Any]:
     """One draw of a whole design; :class:`DesignError` if it is not physical."""
+    # the sensor is redrawn only every SENSOR_ATTEMPTS attempts, so the accepted designs
+    # keep the sensor formats' weights except where a sensor holds no design at all
+    sensor = _sensor(np.random.default_rng([int(seed), 0x73656E73, attempt // SENSOR_ATTEMPTS]))
     rng = np.random.default_rng([int(seed), int(attempt), 0x64657369])
-    sensor = _sensor(rng)
     width, height = sensor["image_size"]
     for _ in range(_LENS_TRIES):  # redraw only the lens while its map folds (cheap)
         try:

@@ -306,13 +306,11 @@ class Preset:
     @cached_property
     def raytrace_representable(self) -> bool:
         """Whether the ``raytrace`` model family holds the truth exactly: distortion
-        defined ray -> pixel without an ``r^8`` term, and a fixed entrance pupil."""
+        defined ray -> pixel without an ``r^8`` term, and an entrance pupil the model's
+        ``e1 theta^2`` holds (any, where the model has ``e1``; else a fixed one)."""
         lens = self.truth_optics.lens
-        return (
-            lens.direction == "ray_to_pixel"
-            and lens.distortion.radial[3] == 0.0
-            and lens.pupil_shift_mm == 0.0
-        )
+        pupil_ok = "e1" in RaytraceModel.PARAM_NAMES or lens.pupil_shift_mm == 0.0
+        return lens.direction == "ray_to_pixel" and lens.distortion.radial[3] == 0.0 and pupil_ok
 
     def _truth_params(self) -> np.ndarray:
         optics = self.truth_optics
@@ -326,7 +324,11 @@ class Preset:
             values[f"{name}_b"] = float(np.arctan(ny / nz))
             values[f"{name}_d"] = plane.d  # the same unit normal, so the same distance
         values["n_glass"] = optics.n_glass
-        return np.array([values[n] for n in RaytraceModel.PARAM_NAMES], dtype=np.float64)
+        # the pupil law z = shift (theta / theta_edge)^2 is the model's e1 theta^2
+        values["e1"] = lens.pupil_shift_mm / lens.pupil_edge_rad**2
+        # every other term the model may have (a rational radial denominator, image-side
+        # decentring, ...) is absent from the truth: 0
+        return np.array([values.get(n, 0.0) for n in RaytraceModel.PARAM_NAMES], dtype=np.float64)
 
     @cached_property
     def truth_model(self) -> RaytraceModel:
