@@ -60,7 +60,7 @@ def make_raytrace_model(**overrides):
         n_glass=1.5168,
     )  # fmt: skip
     values.update(overrides)
-    params = np.array([values[n] for n in RaytraceModel.PARAM_NAMES])
+    params = np.array([values.get(n, 0.0) for n in RaytraceModel.PARAM_NAMES])
     return RaytraceModel(params, ModelConfig((640, 480), 320, RaytraceModel.DEFAULT_FIXED))
 
 
