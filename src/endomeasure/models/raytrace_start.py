@@ -1,10 +1,22 @@
 """The ``raytrace`` model's calibration start, from the refined ``pinhole`` pair.
 
-The lens camera internals come from the virtual cameras, the prism from the angle
-between them, the lens frame from their geometry (:func:`raytrace_from_pinhole`), or
-all of it from the user's seed; then one rigid transform and the free parameters are
-fitted to the corners placed by the pinhole calibration, and the board poses are
-transferred (:func:`seed_raytrace`). No prism design data is needed.
+No design data and no nominal prism: the pinhole calibration places every corner in the
+left virtual camera's frame, and a search over the prism then finds a start
+(:func:`seed_raytrace`):
+
+1. analytic candidates (:func:`_analytic_start`) for each glass index over the
+   catalogue range, rear-face depth and distortion start: the lens axis and the
+   front-face tilts by a 2-D Snell fit to the virtual cameras' rays (:func:`_plane_fit`),
+   the apex on the split column's ray at the depth the virtual centres' spread gives;
+2. each fitted by backward traces alone to a few corners per view (:func:`_ray_fit`:
+   the corner's pinhole-placed point must lie on its pixel's ray), cheap and without
+   ray aiming;
+3. the best of each glass refined on the pixels of a few corners of every view with
+   the board poses, ranked by that cost (the calibration's own), the winner refined
+   once more with the glass free unless calibration holds it.
+
+The calibration's fit over all corners then starts near its optimum. A user's seed
+replaces the candidates.
 """
 
 from __future__ import annotations
@@ -93,12 +105,12 @@ REAR_FRACTIONS = (0.3, 0.75)
 """Rear-face depths the start tries, as fractions of the nearest depth where an observed
 lens ray meets its front face: a prism most of whose depth is glass, and a thin one
 (physically the rear face must lie before every front-face hit; the fits move it)."""
-RANK_CORNERS_PER_HALF = 4
-RAY_FIT_NFEV = 60
+RANK_CORNERS_PER_HALF = 3
+RAY_FIT_NFEV = 40
 RANKED_PER_GLASS = 2
 """Backward fits of each glass refined on the pixels: the backward cost ranks the
 candidates of one glass only roughly."""
-PIXEL_CORNERS_PER_HALF = 8
+PIXEL_CORNERS_PER_HALF = 5
 """Corners per image and half on which the surviving candidates are refined with every
 board pose and ranked by pixel cost: every view at a fraction of the full fit's cost,
 which then starts near its optimum (continuation from few corners to all)."""
@@ -204,7 +216,7 @@ def _analytic_start(
         right_a=tilts[1], right_b=0.0, right_d=float(faces["right"] @ apex),
         n_glass=n,
     )  # fmt: skip
-    return np.array([values[k] for k in names]), R_rt_left, t_rt_left
+    return np.array([values.get(k, 0.0) for k in names]), R_rt_left, t_rt_left
 
 
 def _ray_fit(model: RaytraceModel, R: np.ndarray, t: np.ndarray, obs: Observations,
