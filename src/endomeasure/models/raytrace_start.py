@@ -216,6 +216,7 @@ def _analytic_start(
         right_a=tilts[1], right_b=0.0, right_d=float(faces["right"] @ apex),
         n_glass=n,
     )  # fmt: skip
+    # lens terms a model adds (extensions) start at zero, their nominal value
     return np.array([values.get(k, 0.0) for k in names]), R_rt_left, t_rt_left
 
 
