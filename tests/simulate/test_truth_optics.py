@@ -220,6 +220,11 @@ def test_default_agrees_with_the_raytrace_model_over_the_field(default_preset, r
         assert both.mean() > 0.99
         assert np.abs(pa.pixels[both] - pb.pixels[both]).max() < CROSS_CHECK_TOL_PX
         checked += both.sum()
+        # points anywhere in front of the probe: the two codes find the same ones
+        anywhere = rng.uniform(-30.0, 30.0, (600, 3)) + np.array([0.0, 0.0, 35.0])
+        pa, pb = optics.project(anywhere, half), model.project(anywhere, half)
+        np.testing.assert_array_equal(pa.status == Status.OK, pb.status == Status.OK)
+        assert (pa.status == Status.OK).sum() > 100
     assert checked > 2500
 
 

@@ -50,6 +50,8 @@ AIM_TOL_PX = 1e-11
 """Ray aiming stops when the pixel step falls below this, px (double precision on lens
 coordinates of order 1 and focal lengths of order 1000 px allows about 1e-12 px)."""
 AIM_MAX_ITER = 60
+_AIM_RESTARTS = 3  # further starts (the next nearest grid rays) for points aiming missed
+_RESTART_MISS = 0.05  # restart where the stalled ray misses by under this fraction of z
 _AIM_HALVINGS = 10  # step halvings before aiming gives up on a point (no descent left)
 AIM_FD_STEP = 1e-7  # central-difference step on the ideal lens coordinates (normalised)
 LENS_TOL = 1e-15  # Newton tolerance of the lens map inverse, normalised units
@@ -270,6 +272,14 @@ def refract_vectors(d: np.ndarray, normal: np.ndarray, eta: float):
     return t, tir
 
 
+def _derivative(centre, plus, minus, h: float) -> np.ndarray:
+    """Central difference, one-sided where a probe fell into TIR (next to its edge)."""
+    out = (plus - minus) / (2 * h)
+    bad = ~np.isfinite(out)
+    out[bad] = np.where(np.isfinite(plus), plus - centre, centre - minus)[bad] / h
+    return out
+
+
 def _hit(o: np.ndarray, d: np.ndarray, plane: Plane):
     """Distance along unit rays to a plane (N,); NaN where the plane is behind or parallel."""
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -382,8 +392,8 @@ class TruthOptics:
             out[half] = (x[ok][good], y[ok][good], tr.origins[good], tr.directions[good])
         return out
 
-    def _start(self, points: np.ndarray, half: Half):
-        """Lens coordinates of the grid ray passing nearest each point (N, 3)."""
+    def _start(self, points: np.ndarray, half: Half, rank: int = 0):
+        """Lens coordinates of the grid ray passing ``rank``-th nearest each point (N, 3)."""
         x, y, o, d = self._starts[half]
         if x.size == 0:
             nan = np.full(points.shape[0], np.nan)
@@ -394,12 +404,14 @@ class TruthOptics:
             along = np.einsum("nkj,kj->nk", rel, d)
             dist2 = np.einsum("nkj,nkj->nk", rel, rel) - along**2
             dist2[along <= 0] = np.inf
-            best[i : i + 4096] = np.argmin(dist2, axis=1)
+            order = np.argpartition(dist2, min(rank, x.size - 1), axis=1)
+            best[i : i + 4096] = order[:, min(rank, x.size - 1)]
         return x[best].copy(), y[best].copy()
 
-    def _aim(self, points: np.ndarray, half: Half):
-        """Ideal lens coordinates ``(x, y, converged)`` whose traced rays pass the points."""
-        x, y = self._start(points, half)
+    def _aim(self, points: np.ndarray, half: Half, rank: int = 0):
+        """Ideal lens coordinates ``(x, y, converged)`` whose traced rays pass the points,
+        aimed from the ``rank``-th nearest grid ray."""
+        x, y = self._start(points, half, rank)
         n = points.shape[0]
         done = np.zeros(n, dtype=bool)
         active = np.isfinite(x)
@@ -411,8 +423,8 @@ class TruthOptics:
                 break
             p, xa, ya = points[idx], x[idx], y[idx]
             e = self._miss(xa, ya, p, half)
-            jx = (self._miss(xa + h, ya, p, half) - self._miss(xa - h, ya, p, half)) / (2 * h)
-            jy = (self._miss(xa, ya + h, p, half) - self._miss(xa, ya - h, p, half)) / (2 * h)
+            jx = _derivative(e, self._miss(xa + h, ya, p, half), self._miss(xa - h, ya, p, half), h)
+            jy = _derivative(e, self._miss(xa, ya + h, p, half), self._miss(xa, ya - h, p, half), h)
             det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
             with np.errstate(divide="ignore", invalid="ignore"):
                 sx = (jy[:, 1] * e[:, 0] - jy[:, 0] * e[:, 1]) / det
@@ -455,6 +467,16 @@ class TruthOptics:
         idx = np.flatnonzero(status == Status.OK)
         if idx.size:
             x, y, done = self._aim(p[idx], half)
+            # a start across a TIR patch (near the apex's ends) can leave no descent:
+            # retry those points from the next nearest grid rays
+            for rank in range(1, _AIM_RESTARTS + 1):
+                # stalled close to the point (or in TIR), not far outside the half's field
+                miss = np.hypot(*self._miss(x, y, p[idx], half).T)
+                again = np.flatnonzero(~done & ~(miss >= _RESTART_MISS * p[idx, 2]))
+                if again.size == 0:
+                    break
+                x2, y2, done2 = self._aim(p[idx[again]], half, rank)
+                x[again], y[again], done[again] = x2, y2, done2
             u, v, ok = self.lens.ideal_to_pixel(np.where(done, x, 0.0), np.where(done, y, 0.0))
             good = done & ok
             pixels[idx[good]] = np.stack([u[good], v[good]], axis=-1)
