@@ -614,48 +614,63 @@ def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -
 
     Each group (in the model's order) is freed from the current fit and refined on the
     same inlier corners; it is kept when the Bayesian information criterion
-    ``m ln(SSR) + k ln(m)`` (``m`` residual components, ``k`` the group's size, the
-    noise variance estimated from the residuals) falls, i.e. when
-    ``m ln(SSR_0 / SSR_1) > k ln(m)``: a parameter that only fits noise lowers the SSR
-    by about one noise variance, far less than ``ln(m)`` of them. Parameters the user
-    gave a value for are not freed. After a change the outlier rule runs again.
+    ``m ln(C) + k ln(m)`` falls (``m`` residual components of all corners, ``k`` the
+    group's size, ``C`` the cost), i.e. when ``m ln(C_0 / C_1) > k ln(m)``: a parameter
+    that only fits noise lowers the cost by about one noise variance, far less than
+    ``ln(m)`` of them. The cost is the squared residual of every corner, capped at the
+    outlier threshold, with a corner the model cannot project counted at the cap: a
+    term that folds the lens back or puts a pole in the field loses corners, and must
+    pay for them. A second pass retries the groups the first rejected when it kept one
+    (a radial term can make a pupil term worthwhile). Parameters the user gave a value
+    for are not freed. After a change the outlier rule runs again.
     """
     model = fitted.fit.model
+    cap = float(fitted.threshold_px) ** 2
     use = fitted.inliers
-    m = 2 * int(use.sum())
+    m = 2 * int(use.size)
     current, nfev, freed, findings = fitted.fit, 0, [], []
-    ssr = _ssr(current, obs, use)
-    for group in model.EXTENSIONS:
-        if any(name not in current.model.config.fixed or name in options.values for name in group):
-            continue
-        trial_model = current.model.with_config(fixed=current.model.config.fixed - set(group))
-        try:
-            trial = refine(trial_model, obs, current.rvecs, current.tvecs, use, options.max_nfev,
-                           current.state)  # fmt: skip
-        except CalibrationError:
-            continue
-        nfev += trial.nfev
-        trial_ssr = _ssr(trial, obs, use)
-        usable = trial.status > 0 and trial_ssr > 0 and np.isfinite(ssr) and ssr > 0
-        gain = m * np.log(ssr / trial_ssr) if usable else -np.inf
-        kept = gain > len(group) * np.log(m)
-        findings.append(
-            f"{'freed' if kept else 'kept fixed'} {', '.join(group)}: the information "
-            f"criterion changes by {-gain + len(group) * np.log(m):+.1f} "
-            f"(RMS {np.sqrt(2 * ssr / m):.4f} -> {np.sqrt(2 * trial_ssr / m):.4f} px)"
-        )
-        if kept:
-            current, ssr = trial, trial_ssr
-            freed.extend(group)
+    cost = _capped_cost(current, obs, cap)
+    pending = [g for g in model.EXTENSIONS
+               if all(n in model.config.fixed and n not in options.values for n in g)]  # fmt: skip
+    for _ in range(2):
+        rejected = []
+        for group in pending:
+            trial_model = current.model.with_config(fixed=current.model.config.fixed - set(group))
+            try:
+                trial = refine(trial_model, obs, current.rvecs, current.tvecs, use,
+                               options.max_nfev, current.state)  # fmt: skip
+            except CalibrationError:
+                rejected.append(group)
+                continue
+            nfev += trial.nfev
+            trial_cost = _capped_cost(trial, obs, cap) if trial.status > 0 else np.inf
+            gain = m * np.log(cost / trial_cost) if 0 < trial_cost < np.inf else -np.inf
+            kept = gain > len(group) * np.log(m)
+            findings.append(
+                f"{'freed' if kept else 'kept fixed'} {', '.join(group)}: the information "
+                f"criterion changes by {-gain + len(group) * np.log(m):+.1f} "
+                f"(RMS {np.sqrt(2 * cost / m):.4f} -> {np.sqrt(2 * trial_cost / m):.4f} px, "
+                "capped)"
+            )
+            if kept:
+                current, cost = trial, trial_cost
+                freed.extend(group)
+            else:
+                rejected.append(group)
+        if len(rejected) == len(pending):
+            break
+        pending = rejected
     if not freed:
         return _Selection(fitted, (), tuple(findings), nfev)
     again = _fit(current.model, obs, current.rvecs, current.tvecs, options, current.state)
     return _Selection(again, tuple(freed), tuple(findings), nfev + again.nfev)
 
 
-def _ssr(fit, obs: Observations, use: np.ndarray) -> float:
-    r = all_residuals(fit.model, obs, fit.rvecs, fit.tvecs, fit.state)[use]
-    return float(np.sum(r * r)) if np.all(np.isfinite(r)) else np.inf
+def _capped_cost(fit, obs: Observations, cap: float) -> float:
+    """Sum over every corner of ``min(|r|^2, cap)``, a corner not projected costing ``cap``."""
+    r = all_residuals(fit.model, obs, fit.rvecs, fit.tvecs, fit.state)
+    squared = np.sum(r * r, axis=-1)
+    return float(np.sum(np.where(np.isfinite(squared), np.minimum(squared, cap), cap)))
 
 
 def _same_images(result: CalibrationResult, obs: Observations, config: ModelConfig) -> bool:
