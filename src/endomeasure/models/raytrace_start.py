@@ -110,7 +110,7 @@ RAY_FIT_NFEV = 40
 RANKED_PER_GLASS = 2
 """Backward fits of each glass refined on the pixels: the backward cost ranks the
 candidates of one glass only roughly."""
-PIXEL_CORNERS_PER_HALF = 5
+PIXEL_CORNERS_PER_HALF = 8
 """Corners per image and half on which the surviving candidates are refined with every
 board pose and ranked by pixel cost: every view at a fraction of the full fit's cost,
 which then starts near its optimum (continuation from few corners to all)."""
