@@ -45,7 +45,7 @@ from endomeasure.geometry.distortion import (
     undistort,
 )
 from endomeasure.models import _prism_kernels
-from endomeasure.models.base import FD_STEP_PARAM, CameraModel, ParamBatch, finite_difference
+from endomeasure.models.base import FD_STEP_PARAM, CameraModel, ParamBatch
 from endomeasure.models.lens import (
     FULL_LENS_NAMES,
     IMAGE_TANGENTIAL_NAMES,
@@ -428,8 +428,9 @@ class RaytraceModel(CameraModel):
     def _miss_derivative(self, i: int, x, y, half, points) -> np.ndarray:
         """``dG / d params[i]`` (N, 2) by central differences of the kernel's offset ``G``
         (where the ray of lens coordinates (x, y) crosses the depth of each point, minus
-        the point), one-sided at the edge of the valid domain (e.g. a face distance within
-        a step of zero)."""
+        the point), one-sided at the edge of the valid domain: of the parameters (e.g. a
+        face distance within a step of zero) or of a ray (a step that makes it miss a
+        face, e.g. the pupil moving past a rear face at the lens)."""
         x, y = np.ascontiguousarray(x), np.ascontiguousarray(y)
         points = np.ascontiguousarray(points, dtype=np.float64)
         n_glass = self.index("n_glass")
@@ -449,8 +450,11 @@ class RaytraceModel(CameraModel):
             p[i] += sign * step
             stepped.append(offsets(p))
         plus, minus = stepped
-        centre = None if plus is not None and minus is not None else offsets(self.params)
-        return finite_difference(plus, centre, minus, step)
+        if plus is not None and minus is not None:
+            central = (plus - minus) / (2.0 * step)
+            if np.isfinite(central).all():  # the usual case: no third trace
+                return central
+        return _per_ray_difference(plus, offsets(self.params), minus, step)
 
     def with_params(self, params: np.ndarray) -> RaytraceModel:
         """A new model with other parameters.
@@ -480,6 +484,18 @@ class RaytraceModel(CameraModel):
             step = _LUT_FINE_STEP_W if fine else _LUT_STEP_W
             self._cache[key] = _fit_aim_map(self, half, step)
         return self._cache[key]
+
+
+def _per_ray_difference(plus, centre, minus, step: float) -> np.ndarray:
+    """:func:`~endomeasure.models.base.finite_difference` entry by entry: central where
+    both sides traced, one-sided where only one did (None: that side left the valid
+    parameter domain), NaN where neither did."""
+    nan = np.full_like(centre, np.nan)
+    plus = nan if plus is None else plus
+    minus = nan if minus is None else minus
+    out = (plus - minus) / (2.0 * step)
+    out = np.where(np.isfinite(out), out, (plus - centre) / step)
+    return np.where(np.isfinite(out), out, (centre - minus) / step)
 
 
 # ----- ray aiming ----------------------------------------------------------------------
