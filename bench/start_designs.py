@@ -3,7 +3,7 @@
 Usage::
 
     python bench/start_designs.py [--seeds 1-40] [--noise 0.04] [--free n_glass,k3]
-        [--fixed k3,p1,p2] [--truth] [--from-truth] [--n-glass 1.5168]
+        [--fixed default|k3,p1,p2] [--truth] [--from-truth] [--n-glass 1.5168]
 
 For each design seed (``tests/solvers/design_data.py``): corners of 3 boards x 12 poses
 projected with Gaussian noise by the design's truth (``--truth``: the simulator's design
@@ -88,7 +88,12 @@ def main() -> None:
     parser.add_argument("--seeds", default="1-40")
     parser.add_argument("--noise", type=float, default=0.04)
     parser.add_argument("--free", default="", help="comma list of parameters to free")
-    parser.add_argument("--fixed", default=None, help="comma list of the parameters held")
+    parser.add_argument(
+        "--fixed",
+        default=None,
+        help="comma list of the parameters held ('default': the "
+        "model's DEFAULT_FIXED minus --free, without extension selection)",
+    )
     parser.add_argument("--truth", action="store_true", help="simulate.design + truth optics")
     parser.add_argument("--from-truth", action="store_true", help="seed with the drawn truth")
     parser.add_argument("--n-glass", type=float, default=None, help="the glass index to set")
@@ -96,7 +101,12 @@ def main() -> None:
     from endomeasure.solvers.calibrate import CalibrationOptions
 
     free = frozenset(filter(None, args.free.split(",")))
-    fixed = None if args.fixed is None else frozenset(filter(None, args.fixed.split(",")))
+    from endomeasure.models import RaytraceModel
+
+    if args.fixed == "default":
+        fixed = RaytraceModel.DEFAULT_FIXED - free
+    else:
+        fixed = None if args.fixed is None else frozenset(filter(None, args.fixed.split(",")))
     values = {} if args.n_glass is None else {"n_glass": args.n_glass}
     options = CalibrationOptions(free=free, fixed=fixed, values=values)
     rows = []

@@ -106,7 +106,7 @@ def _try_design(rng: np.random.Generator) -> Design | None:
     )  # fmt: skip
     for face in ("left", "right"):
         values[f"{face}_d"] = float(plane_normal(values[f"{face}_a"], values[f"{face}_b"]) @ apex)
-    params = np.array([values[k] for k in RaytraceModel.PARAM_NAMES])
+    params = np.array([values.get(k, 0.0) for k in RaytraceModel.PARAM_NAMES])
     try:
         provisional = RaytraceModel(params, ModelConfig((width, height), width // 2))
         u = _split_of(provisional)
