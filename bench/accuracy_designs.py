@@ -173,7 +173,9 @@ def run_design(seed: int, work: Path) -> dict:
             "reasons": m["reasons"],
             "rms_px": m["rms_px"],
             "ratio_true": m["rms_px"] / floor,
-            "ratio_formal": m["rms_ratio"],
+            "ratio_verdict": m["rms_ratio"],
+            "formal_floor_px": m["formal_floor_px"],
+            "scatter_floor_px": m["scatter_floor_px"],
             "outlier_fraction": m["n_outliers"] / max(1, m["n_outliers"] + m["n_corners"]),
             "extensions": m["extensions"],
         }
@@ -210,13 +212,14 @@ def _row(r: dict) -> str:
         else "-"
     )
     rt_text = (
-        f"{rt['verdict']} {rt['ratio_true']:.2f} ({rt['ratio_formal']:.2f})" if rt else "refused"
+        f"{rt['verdict']} {rt['ratio_true']:.2f} ({rt['ratio_verdict']:.2f})" if rt else "refused"
     )
     ph_text = f"{ph['verdict']} {ph['ratio_true']:.1f}" if ph else "refused"
     size = "x".join(map(str, r.get("image_size", [])))
+    scatter = rt["scatter_floor_px"] if rt else float("nan")
     return (
         f"| {r['seed']} | {size} | {r['split'] - r['true_split']:+d} | "
-        f"{det['true_floor_px']:.4f} / {det['formal_px']:.4f} | {rt_text} | "
+        f"{det['true_floor_px']:.4f} / {det['formal_px']:.4f} / {scatter:.4f} | {rt_text} | "
         f"{100 * rt['outlier_fraction'] if rt else float('nan'):.1f} | {ph_text} | "
         f"{r['calibrate_s']:.1f} ({r['calibrate_s'] / r['peer_s']:.0f}x) | {bt} |"
     )
@@ -257,14 +260,15 @@ def _summarise(results: list[dict], report: Report, designs: str) -> str:
         f"| median whole `calibrate`, both models (<= 10 s) | {median_time:.1f} s | "
         f"{checks['time']} |",
         "",
-        "Per design: split found minus true (px); detection floor = detected-vs-true RMS / "
-        "formal (px); raytrace verdict and RMS / true floor (RMS / formal floor); raytrace "
+        "Per design: split found minus true (px); floors: detected-vs-true RMS / formal / "
+        "scatter of the raytrace residuals (px); raytrace verdict and RMS / true floor (RMS / "
+        "the verdict's floor); raytrace "
         "outliers %; pinhole verdict and RMS / true floor; whole `calibrate` time (its ratio "
         "to `cv2.stereoCalibrate` on the same detections); board test (raytrace, zones with "
         "n >= 30): worst |segment bias| % / worst |area bias| % / worst point-to-plane "
         "|mean|/std / % of the test corners seen in both halves measured.",
         "",
-        "| seed | sensor | split | floor true / formal | raytrace | outl. % | pinhole | "
+        "| seed | sensor | split | floors true / formal / scatter | raytrace | outl. % | pinhole | "
         "calibrate s | board test |",
         "|---|---|---|---|---|---|---|---|---|",
         *(_row(r) for r in sorted(results, key=lambda r: r["seed"])),

@@ -150,8 +150,9 @@ Targets (issue 5): <= 0.05 px RMS noise-free, <= 0.1 px RMS with noise, every id
 
 
 TABLE_HEAD = (
-    "| model | residual RMS px | ratio to the floor | corners | outliers dropped "
-    "| formal floor px | RMS / formal floor | verdict |\n|---|---:|---:|---:|---:|---:|---:|---|"
+    "| model | residual RMS px | ratio to the floor | corners | outliers dropped | formal floor px "
+    "| scatter floor px | RMS / verdict's floor | verdict |\n"
+    "|---|---:|---:|---:|---:|---:|---:|---:|---|"
 )
 
 
@@ -162,11 +163,11 @@ def calibration_section(report: dict, floor: float, checks: Report) -> str:
     for name, m in report["models"].items():
         rows.append(
             f"| {name} | {m['rms_px']:.4f} | {m['rms_px'] / floor:.2f} | {m['n_corners']} "
-            f"| {m['n_outliers']} | {m['noise_floor_px']:.4f} | {m['rms_ratio']:.2f} "
-            f"| {m['verdict']} |"
+            f"| {m['n_outliers']} | {m['formal_floor_px']:.4f} | {m['scatter_floor_px']:.4f} "
+            f"| {m['rms_ratio']:.2f} | {m['verdict']} |"
         )
     for name, why in report.get("refused", {}).items():
-        rows.append(f"| {name} | refused: {why} | | | | | | |")
+        rows.append(f"| {name} | refused: {why} | | | | | | | |")
     ray = report["models"].get("raytrace", {})
     check = checks.check(RESIDUAL_TARGET, ray.get("rms_px", float("nan")) / floor, CALIBRATION)
     prows = [
@@ -185,13 +186,14 @@ above); RMS figures are of the 2-D residual per corner, inliers only.
 {TABLE_HEAD}
 {chr(10).join(rows)}
 
-The verdict (`solvers/verdict.py`) cannot know the truth: it compares the RMS with the
-formal floor, the RMS a correct model would leave if the detector's only error were the
-pixel noise its formal covariance describes (`features/precision.py`). The true floor is
-larger by the detector's deterministic error on these renders (the noise-free rows of
-the section above), so a model at the true floor shows a ratio above 1 against the
-formal one; the verdict's ok band (up to 1.5) allows for it, its failure limit (2)
-does not depend on it.
+The verdict (`solvers/verdict.py`) cannot know the truth. Its floor is the larger of two
+estimates: the formal floor, the RMS a correct model would leave if the detector's only
+error were the pixel noise its formal covariance describes (`features/precision.py`),
+and the scatter floor, from the second differences of the residuals along the boards'
+rows and columns (independent per-corner errors show there, a model's smooth misfit
+cancels). The formal floor misses the detector's deterministic error on these renders
+(the noise-free rows of the section above); the scatter floor sees it, and its value
+for the raytrace fit is the one to compare with the true floor above.
 
 Target (issue 6): raytrace at most 1.1 x the floor; this run: {check}. The pinhole pair
 cannot follow the prism's non-central, anamorphic mapping; its residual and the outliers

@@ -100,10 +100,14 @@ def calibration_record(result, name: str | None = None) -> ModelRecord:
             verdict=verdict.level,
             verdict_reasons=list(verdict.reasons),
             noise_floor_px=verdict.floor_px,
+            formal_floor_px=verdict.formal_px,
+            scatter_floor_px=verdict.scatter_px,
             rms_ratio=verdict.rms_ratio,
         )
     units = {
         "noise_floor_px": "px",
+        "formal_floor_px": "px",
+        "scatter_floor_px": "px",
         "obs_covariance": "px^2",
         "rms": "px",
         "residual_variance": "px^2",

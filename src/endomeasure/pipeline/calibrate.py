@@ -64,6 +64,8 @@ class ModelSummary:
     verdict: str = "unjudged"
     reasons: list[str] = dataclasses.field(default_factory=list)
     noise_floor: float = float("nan")
+    formal_floor: float = float("nan")
+    scatter_floor: float = float("nan")
     rms_ratio: float = float("nan")
     extensions: list[str] = dataclasses.field(default_factory=list)
     selection: list[str] = dataclasses.field(default_factory=list)
@@ -77,7 +79,8 @@ class ModelSummary:
         d["worst_images"] = [{"image": n, "rms_px": r} for n, r in self.worst_images]
         d["correlations"] = [{"a": a, "b": b, "r": r} for a, b, r in self.correlations]
         d["residual_sigma_px"] = d.pop("residual_sigma")
-        d["noise_floor_px"] = d.pop("noise_floor")
+        for key in ("noise_floor", "formal_floor", "scatter_floor"):
+            d[f"{key}_px"] = d.pop(key)
         return d
 
 
@@ -201,6 +204,8 @@ def _summary(result, plots: list[str]) -> ModelSummary:
         verdict=result.verdict.level,
         reasons=list(result.verdict.reasons),
         noise_floor=result.verdict.floor_px,
+        formal_floor=result.verdict.formal_px,
+        scatter_floor=result.verdict.scatter_px,
         rms_ratio=result.verdict.rms_ratio,
         extensions=list(result.extensions),
         selection=list(result.selection),

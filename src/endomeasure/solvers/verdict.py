@@ -5,16 +5,22 @@ A fit is judged against what the detections allow, not against a fixed pixel fig
 - **RMS against the noise floor.** Each detected corner carries the detector's formal
   covariance ``C_i`` (:mod:`endomeasure.features.precision`). A model that describes the
   optics leaves residuals of that size: ``E[SSR] = (m - n) / m * sum_i tr C_i`` for ``m``
-  residual components and ``n`` unknowns, so the floor is
-  ``sqrt((m - n) / m * mean_i tr C_i)`` as an RMS residual length. The ratio RMS / floor is
-  1 within ``1 / sqrt(2 m)`` (a percent for a few thousand corners) when the model is
-  adequate and the detector unbiased; other errors add in quadrature, so a ratio of
-  ``r`` means errors of ``sqrt(r^2 - 1)`` times the noise on top of it. The formal floor
-  sees pixel noise only: the detector's own deterministic error on blurred, distorted
-  corners comes on top even for a perfect model (its size on renders, against their
-  exact truth: ``docs/accuracy.md``), so up to :data:`OK_RMS_RATIO` is ok; up to
-  :data:`FAILED_RMS_RATIO` a warning; above it the calibration failed: its errors are
-  dominated by what the model cannot describe, whatever the detector's share.
+  residual components and ``n`` unknowns, so the formal floor is
+  ``sqrt((m - n) / m * mean_i tr C_i)`` as an RMS residual length. The ratio RMS / floor
+  is 1 within ``1 / sqrt(2 m)`` (a percent for a few thousand corners) when the model is
+  adequate; model error adds in quadrature, so a ratio of ``r`` means a misfit of
+  ``sqrt(r^2 - 1)`` times the noise. Up to :data:`OK_RMS_RATIO` is ok (misfit at most
+  three quarters of the noise), up to :data:`FAILED_RMS_RATIO` a warning, above it the
+  calibration failed: its errors are dominated by what the model cannot describe.
+- **The scatter floor.** The formal floor cannot see errors of the corners that are not
+  pixel noise (a board's print errors, blur that is not point-symmetric, compression, a
+  renderer's sampling), which no model can fit either. They differ from model error in
+  one way that the data show: model error is a smooth function over the field, the
+  same for neighbouring corners, while these are independent from corner to corner. So
+  the second differences of the residuals along the rows and columns of one board view
+  estimate the per-corner error a correct model would leave, whatever its source
+  (:func:`scatter_floor`). The verdict's floor is the larger of the two; both are
+  reported.
 - **Outliers.** More than :data:`OUTLIER_WARNING_FRACTION` of the corners dropped is a
   sign of trouble (mrcal's rule of thumb); where they are is reported.
 - **Residual structure.** The inlier residuals are averaged over a grid of cells per half;
@@ -37,6 +43,7 @@ __all__ = [
     "Verdict",
     "judge",
     "noise_floor",
+    "scatter_floor",
     "VERDICT_LEVELS",
     "OK_RMS_RATIO",
     "FAILED_RMS_RATIO",
@@ -44,10 +51,10 @@ __all__ = [
 ]
 
 VERDICT_LEVELS = ("ok", "warning", "failed")
-OK_RMS_RATIO = 1.5
-"""RMS / floor up to this is ok: other errors at most 1.1 times the pixel noise."""
+OK_RMS_RATIO = 1.25
+"""RMS / floor up to this is ok: a misfit of at most 0.75 of the noise."""
 FAILED_RMS_RATIO = 2.0
-"""RMS / floor above this fails: other errors more than 1.7 times the pixel noise."""
+"""RMS / floor above this fails: a misfit of more than 1.7 times the noise."""
 OUTLIER_WARNING_FRACTION = 0.03
 STRUCTURE_CELLS = 4
 """Cells per axis of each half for the residual-structure check."""
@@ -62,6 +69,48 @@ EDGE_RADIUS_FRACTION = 0.7
 """Outliers beyond this fraction of the half's centre-to-corner radius are 'at the edge'."""
 
 
+MIN_NEIGHBOUR_PAIRS = 30
+"""Runs of three neighbouring corners needed for the scatter floor."""
+
+
+def scatter_floor(board_points, image, half, residuals) -> float:
+    """RMS residual length left by errors independent from corner to corner, px.
+
+    ``sqrt(mean |r_a - 2 r_b + r_c|^2 / 6)`` over runs of three corners one square apart
+    along a board row or column, in the same half of the same image: a misfit that is
+    smooth over the board (constant or linear across three corners) cancels in the second
+    difference, independent errors of variance ``s^2`` give ``6 s^2`` (NaN with fewer
+    than :data:`MIN_NEIGHBOUR_PAIRS` runs).
+
+    Parameters
+    ----------
+    board_points : ndarray, shape (K, 3), mm
+        Corners in the board frame (on a square grid, z = 0).
+    image, half : ndarray, shape (K,), int
+    residuals : ndarray, shape (K, 2), px
+    """
+    total, runs = 0.0, 0
+    keys = np.asarray(image, dtype=np.int64) * 2 + np.asarray(half, dtype=np.int64)
+    for key in np.unique(keys):
+        sel = np.flatnonzero(keys == key)
+        if sel.size < 3:
+            continue
+        X, r = board_points[sel, :2], residuals[sel]
+        d = np.linalg.norm(X[:, None, :] - X[None, :, :], axis=-1)
+        step = d[np.triu_indices(sel.size, 1)].min()
+        cell = np.rint((X - X.min(axis=0)) / step).astype(np.int64)
+        grid = np.full(tuple(cell.max(axis=0) + 1), -1, dtype=np.int64)
+        grid[cell[:, 0], cell[:, 1]] = np.arange(sel.size)
+        for axis in (0, 1):
+            lo = np.moveaxis(grid, axis, 0)
+            a, b, c = lo[:-2], lo[1:-1], lo[2:]
+            ok = (a >= 0) & (b >= 0) & (c >= 0)
+            second = r[a[ok]] - 2 * r[b[ok]] + r[c[ok]]
+            total += float(np.sum(second * second))
+            runs += int(ok.sum())
+    return float(np.sqrt(total / (6 * runs))) if runs >= MIN_NEIGHBOUR_PAIRS else float("nan")
+
+
 @dataclasses.dataclass(frozen=True)
 class Verdict:
     """The judgement of one calibration.
@@ -73,10 +122,15 @@ class Verdict:
     reasons : tuple of str
         One sentence per finding (empty when ok).
     floor_px : float
-        Expected RMS residual length from the detection noise alone, px (NaN unknown).
+        The RMS residual length a correct model would leave, px: the larger of
+        ``formal_px`` and ``scatter_px`` (NaN when both are unknown).
     rms_ratio : float
         The fit's RMS over the floor (NaN when the floor is unknown).
     outlier_fraction : float
+    formal_px : float
+        The floor from the detector's formal covariance (:func:`noise_floor`).
+    scatter_px : float
+        The floor from the scatter of neighbouring corners' residuals (:func:`scatter_floor`).
     """
 
     level: str
@@ -84,6 +138,8 @@ class Verdict:
     floor_px: float
     rms_ratio: float
     outlier_fraction: float
+    formal_px: float = float("nan")
+    scatter_px: float = float("nan")
 
     @property
     def usable(self) -> bool:
@@ -96,6 +152,8 @@ class Verdict:
             "floor_px": self.floor_px,
             "rms_ratio": self.rms_ratio,
             "outlier_fraction": self.outlier_fraction,
+            "formal_px": self.formal_px,
+            "scatter_px": self.scatter_px,
         }
 
 
@@ -209,27 +267,32 @@ def judge(result, covariance: np.ndarray, n_unknowns: int) -> Verdict:
     """
     inl = np.asarray(result.inliers, dtype=bool)
     m = 2 * int(inl.sum())
-    floor = noise_floor(np.asarray(covariance)[inl], m, n_unknowns)
+    formal = noise_floor(np.asarray(covariance)[inl], m, n_unknowns)
+    scatter = scatter_floor(result.obs_board_points[inl], result.obs_image[inl],
+                            result.obs_half[inl], result.residuals[inl])  # fmt: skip
+    floor = float(np.nanmax([formal, scatter])) if np.isfinite([formal, scatter]).any() else np.nan
     rms = result.rms
     ratio = rms / floor if np.isfinite(floor) and floor > 0 else float("nan")
     outlier_fraction = 1.0 - inl.mean() if inl.size else 0.0
     config = result.model.config
     failed, warnings = [], []
+    floors = f"the larger of the detector's formal {formal:.4f} px and the corners' scatter " \
+             f"{scatter:.4f} px"  # fmt: skip
     if not np.isfinite(ratio):
         warnings.append(
-            "the detection noise is unknown (detections without the detector's precision): the "
-            f"fit's RMS {rms:.4f} px cannot be compared with it; re-run `endomeasure detect`"
+            "the noise floor is unknown (detections without the detector's precision, and too "
+            f"few neighbouring corners): the fit's RMS {rms:.4f} px cannot be judged"
         )
     elif ratio > FAILED_RMS_RATIO:
         failed.append(
-            f"RMS {rms:.4f} px is {ratio:.1f} times the detection noise floor {floor:.4f} px "
-            f"(limit {FAILED_RMS_RATIO:g}): the model does not describe this probe, or the "
+            f"RMS {rms:.4f} px is {ratio:.1f} times the noise floor {floor:.4f} px ({floors}; "
+            f"limit {FAILED_RMS_RATIO:g}): the model does not describe this probe, or the "
             "fit stopped in a wrong minimum"
         )
     elif ratio > OK_RMS_RATIO:
         warnings.append(
-            f"RMS {rms:.4f} px is {ratio:.2f} times the detection noise floor {floor:.4f} px "
-            f"(ok up to {OK_RMS_RATIO:g}): part of the residual is model error"
+            f"RMS {rms:.4f} px is {ratio:.2f} times the noise floor {floor:.4f} px ({floors}; "
+            f"ok up to {OK_RMS_RATIO:g}): part of the residual is model error"
         )
     if outlier_fraction > OUTLIER_WARNING_FRACTION:
         where = _where(result.obs_pixels[~inl], result.obs_half[~inl], config.split,
@@ -247,4 +310,5 @@ def judge(result, covariance: np.ndarray, n_unknowns: int) -> Verdict:
     if undetermined:
         warnings.append(undetermined)
     level = "failed" if failed else ("warning" if warnings else "ok")
-    return Verdict(level, tuple(failed + warnings), floor, ratio, float(outlier_fraction))
+    return Verdict(level, tuple(failed + warnings), floor, ratio, float(outlier_fraction),
+                   formal, scatter)  # fmt: skip
