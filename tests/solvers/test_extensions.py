@@ -1,0 +1,60 @@
+"""Lens extensions chosen by the data (``CameraModel.EXTENSIONS``, solvers/calibrate.py).
+
+Detections are projections through a known raytrace model with a term the default fit
+holds at zero (a moving entrance pupil, or third-order radial distortion) plus seeded
+noise: the selection must free exactly the group that the truth has, reach the noise
+floor with it, and free nothing when the truth has none of them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from tests.solvers.calibration_data import perturbed_raytrace_truth, synthetic_views
+
+from endomeasure.conventions import Half
+from endomeasure.solvers.calibrate import CalibrationOptions, calibrate
+
+NOISE_PX = 0.03
+
+
+def _views(truth, seed):
+    data = synthetic_views(truth, np.random.default_rng(seed), n_images=10, noise_px=NOISE_PX)
+    cov = np.eye(2) * NOISE_PX**2
+    views = [
+        dataclasses.replace(v, covariance=tuple(np.tile(cov, (len(v.ids[h]), 1, 1)) for h in Half))
+        for v in data.views
+    ]
+    return views, data.boards
+
+
+@pytest.mark.parametrize(
+    ("extra", "group"),
+    [({"k3": -0.08}, ("k3",)), ({"e1": 0.4}, ("e1", "e2"))],
+)
+def test_the_group_the_truth_has_is_freed_and_reaches_the_floor(extra, group):
+    truth = perturbed_raytrace_truth().with_values(extra)
+    views, boards = _views(truth, 3)
+    cfg = truth.config
+    result = calibrate("raytrace", views, boards, cfg.image_size, cfg.split)
+    assert set(group) <= set(result.extensions), result.selection
+    assert result.verdict.rms_ratio == pytest.approx(1.0, abs=0.08)
+    # held at zero the same data are fitted worse than the noise
+    zero = CalibrationOptions(values=dict.fromkeys(group, 0.0), fixed=truth.DEFAULT_FIXED)
+    held = calibrate("raytrace", views, boards, cfg.image_size, cfg.split, zero, start=result)
+    assert held.verdict.rms_ratio > result.verdict.rms_ratio
+    # and the freed term is found where the truth has it (within 4 predicted sigmas)
+    name = group[0]
+    fitted = result.model.named_params()[name]
+    assert abs(fitted - extra[name]) < 4 * result.named_std()[name]
+
+
+def test_nothing_is_freed_when_the_truth_has_none_of_them():
+    truth = perturbed_raytrace_truth()
+    views, boards = _views(truth, 4)
+    cfg = truth.config
+    result = calibrate("raytrace", views, boards, cfg.image_size, cfg.split)
+    assert result.extensions == (), result.selection
+    assert len(result.selection) == len(truth.EXTENSIONS)
