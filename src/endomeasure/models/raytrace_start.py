@@ -106,7 +106,9 @@ REAR_FRACTIONS = (0.3, 0.75)
 lens ray meets its front face: a prism most of whose depth is glass, and a thin one
 (physically the rear face must lie before every front-face hit; the fits move it)."""
 RANK_CORNERS_PER_HALF = 3
-RAY_FIT_NFEV = 40
+"""Corners per image and half of the backward fits (spread over the half's corners): a
+few hundred corners over every view rank the candidates as well as all of them."""
+RAY_FIT_NFEV = 40  # residual evaluations per backward fit: it converges in about 20
 RANKED_PER_GLASS = 2
 """Backward fits of each glass refined on the pixels: the backward cost ranks the
 candidates of one glass only roughly."""
@@ -114,8 +116,6 @@ PIXEL_CORNERS_PER_HALF = 8
 """Corners per image and half on which the surviving candidates are refined with every
 board pose and ranked by pixel cost: every view at a fraction of the full fit's cost,
 which then starts near its optimum (continuation from few corners to all)."""
-"""Corners per image and half with which the candidate starts are ranked (spread over
-the half's corners): a ray fit on a few hundred corners ranks as well as on all."""
 
 
 def _plane_fit(pinhole: PinholeModel, obs: Observations, n: float, cx: float, fx: float):
