@@ -108,7 +108,7 @@ lens ray meets its front face: a prism most of whose depth is glass, and a thin 
 RANK_CORNERS_PER_HALF = 3
 """Corners per image and half of the backward fits (spread over the half's corners): a
 few hundred corners over every view rank the candidates as well as all of them."""
-RAY_FIT_NFEV = 40  # residual evaluations per backward fit: it converges in about 20
+RAY_FIT_NFEV = 40  # a cap: a backward fit still far from converged then is a poor candidate
 RANKED_PER_GLASS = 2
 """Backward fits of each glass refined on the pixels: the backward cost ranks the
 candidates of one glass only roughly."""
