@@ -555,10 +555,10 @@ def calibrate(
     ] = defaults.ALL_MODELS,
     glass_index: Annotated[
         float | None,
-        typer.Option("--glass-index", help="Prism glass index (default N-BK7, 1.5168)."),
+        typer.Option("--glass-index", help="Known prism glass index, held (default: estimated)."),
     ] = None,
     free_index: Annotated[
-        bool, typer.Option("--free-index", help="Estimate the glass index too.")
+        bool, typer.Option("--free-index", help="Estimate the index from --glass-index.")
     ] = False,
     seed: Annotated[
         Path | None,
@@ -586,6 +586,7 @@ def calibrate(
             model,
             values={} if glass_index is None else {"n_glass": glass_index},
             free=("n_glass",) if free_index else (),
+            hold=("n_glass",) if glass_index is not None and not free_index else (),
             seed=seed,
             plot_dir=plot,
         )

@@ -435,7 +435,10 @@ class CameraModel(abc.ABC):
             ``dq_dparams`` has shape (..., 2, F), px per parameter unit; both Jacobians
             are NaN where status is not OK.
         """
-        free = np.arange(self.params.size) if free is None else np.asarray(free, dtype=np.int64)
+        free = np.arange(self.params.size) if free is None else np.asarray(free)
+        if free.dtype == bool:
+            raise TypeError("free must hold parameter positions, not a mask (np.flatnonzero)")
+        free = free.astype(np.int64)
 
         def evaluate(flat, half):
             return self._project_jacobians(flat, half, free)

@@ -9,8 +9,8 @@ One real camera looks through a prism described by three planes in the camera fr
 Each plane is ``n . x = d`` with the unit normal parameterised by two tilts about the
 optical axis, ``n = (tan a, tan b, 1) / |(tan a, tan b, 1)|`` (regular for faces near
 perpendicular to the axis, unlike spherical angles), and ``d`` in mm. ``n_glass`` is
-the prism's refractive index, held fixed by default because it is strongly correlated
-with the face tilts.
+the prism's refractive index, estimated by default: over the wide fields of endoscope
+lenses it is not degenerate with the face tilts (a known glass can be held).
 
 The camera is ``fx fy cx cy`` and lens distortion ``k1 k2`` (the paper's), with the
 extensions a real endoscope lens may need, all 0 and held fixed by default
@@ -260,7 +260,7 @@ class RaytraceModel(CameraModel):
         "n_glass": "1",
     }  # fmt: skip
     DEFAULT_FIXED: ClassVar[frozenset[str]] = frozenset(
-        {"k3", "p1", "p2", "n_glass", *RATIONAL_NAMES, *PUPIL_NAMES, *IMAGE_TANGENTIAL_NAMES}
+        {"k3", "p1", "p2", *RATIONAL_NAMES, *PUPIL_NAMES, *IMAGE_TANGENTIAL_NAMES}
     )
     EXTENSIONS: ClassVar[tuple[tuple[str, ...], ...]] = (
         ("k3",), ("k4", "k5"), PUPIL_NAMES, ("p1", "p2"), IMAGE_TANGENTIAL_NAMES, ("k6",),
@@ -369,7 +369,8 @@ class RaytraceModel(CameraModel):
             UNDISTORT_TOL_PX / np.maximum(p["fx"], p["fy"]),
             r2_max=float(r2[0]) if one else r2[batch.index],
         )
-        faces = self.faces_array(half)[None] if one else _faces(batch.table, half)
+        own = one and np.array_equal(batch.table[0], self.params)
+        faces = self.faces_array(half)[None] if own else _faces(batch.table, half)
         n_glass = self.column(batch.table, "n_glass")
         traced = _trace(und.x, und.y, faces, n_glass, None if one else batch.index)
         status = np.where(und.converged, traced.status, Status.NOT_CONVERGED)

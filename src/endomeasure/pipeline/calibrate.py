@@ -243,6 +243,7 @@ def calibrate_session(
     free: Sequence[str] = (),
     seed: str | Path | None = None,
     plot_dir: str | Path | None = None,
+    hold: Sequence[str] = (),
 ) -> CalibrateReport:
     """Calibrate the requested model(s) from a session's detections and store them.
 
@@ -256,6 +257,8 @@ def calibrate_session(
         model takes those it has.
     free : sequence of str
         Parameters to estimate that the models hold fixed by default.
+    hold : sequence of str
+        Parameters to hold at their values that the models estimate by default.
     seed : path, optional
         JSON file of a model with nominal design values: seeds the model of its kind.
     plot_dir : path, optional
@@ -272,7 +275,8 @@ def calibrate_session(
     from endomeasure.solvers.calibrate import calibrate
 
     names = calibration_order(model)
-    options = _options_per_model(names, dict(values or {}), frozenset(free), _read_seed(seed))
+    options = _options_per_model(names, dict(values or {}), frozenset(free), frozenset(hold),
+                                 _read_seed(seed))  # fmt: skip
     views, boards, image_size, split = load_calibration_inputs(session)
     results: dict[str, Any] = {}
     refused: dict[str, str] = {}
@@ -295,14 +299,14 @@ def calibrate_session(
                            summaries, refused, model == ALL_MODELS)  # fmt: skip
 
 
-def _options_per_model(names, values: dict, free: frozenset, seed) -> dict:
+def _options_per_model(names, values: dict, free: frozenset, hold: frozenset, seed) -> dict:
     """Each model's CalibrationOptions: the values and freed parameters it has, and the
     seed if it is of its kind; BadInputError for what applies to none of them."""
     from endomeasure.models import MODELS
     from endomeasure.solvers.calibrate import CalibrationOptions
 
     known = {p for name in names for p in MODELS[name].PARAM_NAMES}
-    unused = sorted((set(values) | free) - known)
+    unused = sorted((set(values) | free | hold) - known)
     if unused:
         raise BadInputError(
             f"no model to calibrate ({', '.join(names)}) has the parameter(s) {unused}",
@@ -319,6 +323,7 @@ def _options_per_model(names, values: dict, free: frozenset, seed) -> dict:
         options[name] = CalibrationOptions(
             values={k: v for k, v in values.items() if k in params},
             free=free & params,
+            hold=hold & params,
             seed=seed if seed is not None and seed.get("model") == name else None,
         )
     return options

@@ -68,6 +68,12 @@ apparent spread; the limit sits above that and far below the paper's +-30 degree
 MIN_DISTANCE_RATIO = 1.15
 """Boards whose farthest distance is less than this ratio times the nearest count as
 one distance: the prism's non-central geometry needs a range of depths."""
+MIN_PROJECTED_FRACTION = 0.5
+"""A fit that seeds another one must project at least this share of the corners (the
+rest, e.g. corners a pinhole pair places across the split, the next fit judges)."""
+NUMERICAL_FLOOR_PX = 1e-6
+"""The precision the models' projections promise (SPEC 4): residuals below it are
+round-off, which no parameter explains."""
 CONVERGED_RMS_LIMIT_PX = 20.0
 """A fit whose RMS stays above this has not found the board geometry (a wrong local
 minimum or corrupted detections), whatever the optimiser's status says."""
@@ -113,13 +119,16 @@ class CalibrationOptions:
         Parameter values to start from and, when fixed, keep (e.g. ``{"n_glass": 1.6}``);
         a model without such a parameter ignores it.
     free : frozenset of str
-        Parameters to estimate although the model holds them fixed by default (e.g.
-        ``n_glass``, strongly correlated with the face tilts: see the correlations).
+        Parameters to estimate although the model holds them fixed by default.
+    hold : frozenset of str
+        Parameters to hold at their values (``values`` or the start's) although the model
+        estimates them by default, e.g. a known glass index ``n_glass``.
     seed : mapping or None
         A model dict (:meth:`CameraModel.to_dict`) of the model being calibrated, with
         nominal design values, used by its initialiser instead of the analytic start.
     fixed : frozenset of str or None
-        Parameters held fixed; None means the model's ``DEFAULT_FIXED`` minus ``free``.
+        Parameters held fixed, the whole set; None means the model's ``DEFAULT_FIXED``
+        and ``hold`` minus ``free``, with the ``EXTENSIONS`` the data call for freed.
     outlier_sigmas : float
         Outlier threshold in robust standard deviations (:mod:`endomeasure.solvers.bundle`).
     max_outlier_rounds : int
@@ -129,11 +138,12 @@ class CalibrationOptions:
 
     values: Mapping[str, float] = dataclasses.field(default_factory=dict)
     free: frozenset[str] = frozenset()
+    hold: frozenset[str] = frozenset()
     seed: Mapping[str, Any] | None = None
     fixed: frozenset[str] | None = None
     outlier_sigmas: float = 5.0
     max_outlier_rounds: int = 3
-    max_nfev: int = 200
+    max_nfev: int = 500
 
 
 # ----- the result -------------------------------------------------------------------------
@@ -573,7 +583,10 @@ def calibrate(
     if cls.NAME in given:
         # warm start: re-calibration of the same images (e.g. with new detections)
         previous = given[cls.NAME]
-        model = previous.model.with_config(fixed=config.fixed).with_values(dict(options.values))
+        # the extensions the data called for stay free (unless the caller fixed the set)
+        kept = set(previous.extensions) if options.fixed is None else set()
+        fixed = config.fixed - kept
+        model = previous.model.with_config(fixed=fixed).with_values(dict(options.values))
         first = Start(model, np.array(previous.rvecs), np.array(previous.tvecs),
                       "an earlier calibration")  # fmt: skip
     else:
@@ -620,7 +633,8 @@ def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -
     ``ln(m)`` of them. The cost is the squared residual of every corner, capped at the
     outlier threshold, with a corner the model cannot project counted at the cap: a
     term that folds the lens back or puts a pole in the field loses corners, and must
-    pay for them. A second pass retries the groups the first rejected when it kept one
+    pay for them. A group that leaves a parameter undetermined by the data (a singular
+    covariance) is not kept. A second pass retries the groups the first rejected when it kept one
     (a radial term can make a pupil term worthwhile). Parameters the user gave a value
     for are not freed. After a change the outlier rule runs again.
     """
@@ -630,8 +644,9 @@ def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -
     m = 2 * int(use.size)
     current, nfev, freed, findings = fitted.fit, 0, [], []
     cost = _capped_cost(current, obs, cap)
+    chosen = set(options.values) | options.hold
     pending = [g for g in model.EXTENSIONS
-               if all(n in model.config.fixed and n not in options.values for n in g)]  # fmt: skip
+               if all(n in model.config.fixed and n not in chosen for n in g)]  # fmt: skip
     for _ in range(2):
         rejected = []
         for group in pending:
@@ -644,8 +659,8 @@ def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -
                 continue
             nfev += trial.nfev
             trial_cost = _capped_cost(trial, obs, cap) if trial.status > 0 else np.inf
-            gain = m * np.log(cost / trial_cost) if 0 < trial_cost < np.inf else -np.inf
-            kept = gain > len(group) * np.log(m)
+            gain = m * np.log(cost / trial_cost) if trial_cost < np.inf else -np.inf
+            kept = gain > len(group) * np.log(m) and _determined(trial, obs, use)
             findings.append(
                 f"{'freed' if kept else 'kept fixed'} {', '.join(group)}: the information "
                 f"criterion changes by {-gain + len(group) * np.log(m):+.1f} "
@@ -667,10 +682,21 @@ def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -
 
 
 def _capped_cost(fit, obs: Observations, cap: float) -> float:
-    """Sum over every corner of ``min(|r|^2, cap)``, a corner not projected costing ``cap``."""
+    """Sum over every corner of ``min(|r|^2, cap)``, a corner not projected costing ``cap``,
+    plus the projections' own precision (:data:`NUMERICAL_FLOOR_PX` per corner), so that
+    fits of exact data do not compare their round-off."""
     r = all_residuals(fit.model, obs, fit.rvecs, fit.tvecs, fit.state)
     squared = np.sum(r * r, axis=-1)
-    return float(np.sum(np.where(np.isfinite(squared), np.minimum(squared, cap), cap)))
+    capped = np.where(np.isfinite(squared), np.minimum(squared, cap), cap)
+    return float(np.sum(capped + NUMERICAL_FLOOR_PX**2))
+
+
+def _determined(fit, obs: Observations, use: np.ndarray) -> bool:
+    """Whether the data determine every free parameter of a fit (a regular covariance)."""
+    problem = BundleProblem(fit.model, obs, use, fit.state)
+    x = problem.pack(fit.model, fit.rvecs, fit.tvecs)
+    Jp, Jq, pose_rows = problem.blocks(x)
+    return marginal_covariance(Jp, Jq, pose_rows, problem.images.size, 1.0).covariance is not None
 
 
 def _same_images(result: CalibrationResult, obs: Observations, config: ModelConfig) -> bool:
@@ -683,7 +709,7 @@ def _same_images(result: CalibrationResult, obs: Observations, config: ModelConf
 
 
 def _fixed_parameters(cls: type[CameraModel], options: CalibrationOptions) -> frozenset[str]:
-    fixed = set(cls.DEFAULT_FIXED if options.fixed is None else options.fixed)
+    fixed = set(cls.DEFAULT_FIXED | options.hold if options.fixed is None else options.fixed)
     for what, names in (("fix", fixed), ("free", options.free), ("set", options.values)):
         unknown = set(names) - set(cls.PARAM_NAMES)
         if unknown:
@@ -723,8 +749,13 @@ class _Chain:
         return fit
 
     def _check(self, fit) -> None:
-        """:func:`_check_fit` on a fit of every corner that starts another one."""
+        """:func:`_check_fit` on a fit of every corner that starts another one; corners it
+        cannot project (a seed model near the split) are left to the fits after it, as
+        long as most of them can be projected."""
         residuals = all_residuals(fit.model, self.obs, fit.rvecs, fit.tvecs, fit.state)
+        projected = np.isfinite(residuals).all(axis=-1)
+        if projected.mean() >= MIN_PROJECTED_FRACTION:
+            residuals = residuals[projected]
         _check_fit(fit, residuals, "the start of the")
 
     def start_of(self, cls: type[CameraModel], config: ModelConfig, seed=None) -> Start:
