@@ -41,7 +41,8 @@ ACCURACY_RUNS := \
 	"bench/accuracy_report.py sample_sessions --test-seeds 1,2,3 --work $(ACCURACY_WORK)" \
 	"bench/corner_precision.py $(ACCURACY_WORK) --twins 8" \
 	"bench/accuracy_scene.py" \
-	"bench/match_precision.py"
+	"bench/match_precision.py" \
+	"bench/accuracy_designs.py --work $(ACCURACY_WORK)/designs --jobs 2"
 
 bench: install
 	@failed=""; \
@@ -60,6 +61,8 @@ accuracy: install
 lint: install
 	$(VENV)/bin/ruff check src tests bench scripts
 
+# accuracy_designs.py renders, detects and calibrates 40 random probe designs (hours on 2
+# cores; resumable: finished designs are kept in its work folder).
 # The committed sample set (calibration + test + scene, with ground truth): the default
 # preset, seed 0. Deterministic: rerunning it reproduces the images byte for byte (the truth
 # JSONs too, with the same ray-aiming code; see sample_sessions/README.md).

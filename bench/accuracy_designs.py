@@ -21,7 +21,8 @@ the raytrace board test runs when that calibration is usable. Recorded per desig
   detections (the peer).
 
 Results go to ``WORK/designs.jsonl`` as each design finishes (a rerun skips designs
-already there), and the "designs" section of docs/accuracy.md unless ``--no-write``.
+already there; ``--no-run`` only summarises them), and the "designs" section of
+docs/accuracy.md unless ``--no-write``.
 ``--quick``: designs 1-2. Targets (issue 15): ray-tracing fit RMS <= 1.25x the detection
 floor on at least 38 of 40; none exits 0 above 2x; board-test figures on every converged
 design; outliers <= 3 % on at least 36; median calibrate time <= 10 s.
@@ -285,6 +286,9 @@ def main(argv=None) -> int:
     parser = script_parser(__doc__, work=True)
     parser.add_argument("--designs", default=DEFAULT_DESIGNS, help="seeds, e.g. 1-40 or 1,5")
     parser.add_argument("--jobs", type=int, default=1, help="designs run at once")
+    parser.add_argument(
+        "--no-run", action="store_true", help="only summarise the designs WORK already holds"
+    )
     args = parser.parse_args(argv)
     report = Report("bench/accuracy_designs.py", args, ACCURACY)
     seeds = _seeds("1-2" if args.quick else args.designs)
@@ -296,7 +300,7 @@ def main(argv=None) -> int:
         for line in store.read_text().splitlines():
             r = json.loads(line)
             done[r["seed"]] = r
-    todo = [s for s in seeds if s not in done]
+    todo = [] if args.no_run else [s for s in seeds if s not in done]
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         for r in pool.map(run_design, todo, [work] * len(todo)):
             done[r["seed"]] = r
@@ -304,7 +308,10 @@ def main(argv=None) -> int:
                 f.write(json.dumps(r) + "\n")
             print(_row(r), flush=True)
     results = [done[s] for s in seeds if s in done]
-    body = _summarise(results, report, "1-2" if args.quick else args.designs)
+    label = "1-2" if args.quick else args.designs
+    if len(results) < len(seeds):
+        label += f" (only {', '.join(str(r['seed']) for r in results)} run so far)"
+    body = _summarise(results, report, label)
     return report.finish({"designs": body})
 
 
