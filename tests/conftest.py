@@ -102,3 +102,15 @@ def model_factory():
     """The design factories themselves, for tests that perturb a design:
     ``model_factory['raytrace'](k3=0.01)``."""
     return {"pinhole": make_pinhole_model, "raytrace": make_raytrace_model}
+
+
+def assert_snell(surfaces) -> None:
+    """Snell's law at each surface: ``n_a sin(a) = n_b sin(b)`` and the two rays coplanar
+    with the normal; ``surfaces`` holds (incident (N, 3), refracted (N, 3), normal (3,),
+    n_a, n_b) with unit vectors."""
+    for a, b, normal, n_a, n_b in surfaces:
+        sin_a = np.linalg.norm(np.cross(a, normal), axis=1)
+        sin_b = np.linalg.norm(np.cross(b, normal), axis=1)
+        np.testing.assert_allclose(n_a * sin_a, n_b * sin_b, atol=1e-8)
+        coplanar = np.einsum("ni,ni->n", np.cross(a, b), np.broadcast_to(normal, a.shape))
+        np.testing.assert_allclose(coplanar, 0.0, atol=1e-8)

@@ -203,6 +203,22 @@ class DesignSet(NamedTuple):
     noise_rms_px: float  # RMS length of detected minus true pixels over all corners
 
 
+def _noisy_corners(optics, P, noise_px, rng, split, size):
+    """Per half: the ids, noisy pixels and exact pixels of the points ``P`` that ``optics``
+    projects into the half and a detector would find (:func:`_detectable`)."""
+    ids, pixels, exact = [], [], []
+    for half in Half:
+        proj = optics.project(P, half)
+        ok = np.flatnonzero(proj.status == Status.OK)
+        q0 = proj.pixels[ok]
+        q = q0 + noise_px * rng.standard_normal(q0.shape)
+        keep = in_half(q, half, split, size) & _detectable(q, half, split, size, rng)
+        ids.append(ok[keep])
+        pixels.append(q[keep])
+        exact.append(q0[keep])
+    return ids, pixels, exact
+
+
 def design_views(
     design: Design,
     seed: int,
@@ -239,17 +255,7 @@ def design_views(
             centre = 0.5 * (cl + cr) + rng.uniform(-0.08, 0.08, 2) * z
             R, t = _pose(rng, z, centre, X, max_tilt_deg)
             P = X @ R.T + t
-            ids, pixels, exact = [], [], []
-            for half in Half:
-                proj = truth.project(P, half)
-                ok = np.flatnonzero(proj.status == Status.OK)
-                q0 = proj.pixels[ok]
-                q = q0 + noise_px * rng.standard_normal(q0.shape)
-                keep = in_half(q, half, split, (width, height))
-                keep &= _detectable(q, half, split, (width, height), rng)
-                ids.append(ok[keep])
-                pixels.append(q[keep])
-                exact.append(q0[keep])
+            ids, pixels, exact = _noisy_corners(truth, P, noise_px, rng, split, (width, height))
             if min(i.size for i in ids) < 12:
                 continue
             views.append(ViewDetections(f"{name}_{made:02d}", name, tuple(ids), tuple(pixels)))
@@ -298,17 +304,7 @@ def truth_design_views(seed: int, noise_px: float = 0.04, images: int | None = N
         board = shot.target
         boards.setdefault(board.name, board.corners_board)
         P = board.corners_camera
-        ids, pixels, exact = [], [], []
-        for half in Half:
-            proj = optics.project(P, half)
-            ok = np.flatnonzero(proj.status == Status.OK)
-            q0 = proj.pixels[ok]
-            q = q0 + noise_px * rng.standard_normal(q0.shape)
-            keep = in_half(q, half, split, (width, height))
-            keep &= _detectable(q, half, split, (width, height), rng)
-            ids.append(ok[keep])
-            pixels.append(q[keep])
-            exact.append(q0[keep])
+        ids, pixels, exact = _noisy_corners(optics, P, noise_px, rng, split, (width, height))
         views.append(ViewDetections(shot.name, board.name, tuple(ids), tuple(pixels)))
         truths.append(tuple(exact))
         errors.extend(p - e for p, e in zip(pixels, exact, strict=True))
