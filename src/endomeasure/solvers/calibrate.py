@@ -37,7 +37,7 @@ from endomeasure.solvers.bundle import (
     refine,
 )
 from endomeasure.solvers.covariance import marginal_covariance
-from endomeasure.solvers.verdict import Verdict, judge
+from endomeasure.solvers.verdict import MIN_CORRELATION_EIGENVALUE, Verdict, judge
 
 __all__ = [
     "ViewDetections",
@@ -633,9 +633,10 @@ def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -
     ``ln(m)`` of them. The cost is the squared residual of every corner, capped at the
     outlier threshold, with a corner the model cannot project counted at the cap: a
     term that folds the lens back or puts a pole in the field loses corners, and must
-    pay for them. A group that leaves a parameter undetermined by the data (a singular
-    covariance) is not kept. A second pass retries the groups the first rejected when it kept one
-    (a radial term can make a pupil term worthwhile). Parameters the user gave a value
+    pay for them. A group that leaves a combination of parameters undetermined by the
+    data (a correlation eigenvalue below the verdict's limit) is not kept. A second pass
+    retries the groups the first rejected when it kept one (a radial term can make a
+    pupil term worthwhile). Parameters the user gave a value
     for are not freed. After a change the outlier rule runs again.
     """
     model = fitted.fit.model
@@ -692,11 +693,19 @@ def _capped_cost(fit, obs: Observations, cap: float) -> float:
 
 
 def _determined(fit, obs: Observations, use: np.ndarray) -> bool:
-    """Whether the data determine every free parameter of a fit (a regular covariance)."""
+    """Whether the data determine every free parameter of a fit: a regular covariance
+    whose correlation matrix has no eigenvalue below the verdict's limit (a term that
+    trades against others, e.g. a moving pupil against the face distances, would leave
+    the scale of every measurement to a combination the data hardly see)."""
     problem = BundleProblem(fit.model, obs, use, fit.state)
     x = problem.pack(fit.model, fit.rvecs, fit.tvecs)
     Jp, Jq, pose_rows = problem.blocks(x)
-    return marginal_covariance(Jp, Jq, pose_rows, problem.images.size, 1.0).covariance is not None
+    cov = marginal_covariance(Jp, Jq, pose_rows, problem.images.size, 1.0).covariance
+    if cov is None:
+        return False
+    s = np.sqrt(np.diag(cov))
+    correlation = cov / np.outer(s, s)
+    return bool(np.linalg.eigvalsh(correlation)[0] >= MIN_CORRELATION_EIGENVALUE)
 
 
 def _same_images(result: CalibrationResult, obs: Observations, config: ModelConfig) -> bool:

@@ -48,6 +48,7 @@ __all__ = [
     "OK_RMS_RATIO",
     "FAILED_RMS_RATIO",
     "OUTLIER_WARNING_FRACTION",
+    "MIN_CORRELATION_EIGENVALUE",
 ]
 
 VERDICT_LEVELS = ("ok", "warning", "failed")
