@@ -178,6 +178,5 @@ def noise_gain(frac: np.ndarray) -> np.ndarray:
     y0, y1 = _GAIN_TABLE[i], _GAIN_TABLE[i + 1]
     m0, m1 = _GAIN_SLOPES[i] * h, _GAIN_SLOPES[i + 1] * h
     t2, t3 = t * t, t * t * t
-    return (
-        (2 * t3 - 3 * t2 + 1) * y0 + (t3 - 2 * t2 + t) * m0 + (-2 * t3 + 3 * t2) * y1 + (t3 - t2) * m1
-    )
+    h00, h10, h01, h11 = 2 * t3 - 3 * t2 + 1, t3 - 2 * t2 + t, 3 * t2 - 2 * t3, t3 - t2
+    return h00 * y0 + h10 * m0 + h01 * y1 + h11 * m1

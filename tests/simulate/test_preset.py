@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from endomeasure.errors import BadInputError
-from endomeasure.models.raytrace import RaytraceModel
 from endomeasure.simulate.optics import apex_columns
 from endomeasure.simulate.preset import Preset, builtin_presets, load_preset
 
