@@ -8,10 +8,9 @@ import cv2
 import numpy as np
 import pytest
 from tests.solvers.calibration_data import (
-    BOARD_COLS,
-    BOARD_ROWS,
     perturbed_raytrace_truth,
     synthetic_views,
+    write_session,
 )
 from typer.testing import CliRunner
 
@@ -19,33 +18,18 @@ from endomeasure import cli
 from endomeasure.conventions import Half
 from endomeasure.io.export import read_opencv_yaml
 from endomeasure.io.records import model_from_record
-from endomeasure.io.session import Detection, edit_session, open_session
+from endomeasure.io.session import open_session
 from endomeasure.models import model_from_dict
 
 runner = CliRunner()
 NOISE_PX = 0.1
 
 
-def _spec(board_key: str) -> str:
-    return f"chessboard:{BOARD_COLS}x{BOARD_ROWS}:{board_key.removeprefix('sq')}"
-
-
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
     truth = perturbed_raytrace_truth()
     data = synthetic_views(truth, np.random.default_rng(21), n_images=12, noise_px=NOISE_PX)
-    path = tmp_path_factory.mktemp("cal") / "probe.h5"
-    with edit_session(path, create=True) as w:
-        w.set_metadata(image_size=(640, 480), split=320)
-        for key in sorted({v.board for v in data.views}):
-            w.write_board(_spec(key), _spec(key))
-        dets = [
-            Detection(v.name, _spec(v.board), h, v.ids[h].astype(np.int32), v.pixels[h], 1.0, "")
-            for v in data.views
-            for h in Half
-        ]
-        w.write_detections(dets)
-    return path
+    return write_session(tmp_path_factory.mktemp("cal") / "probe.h5", data)
 
 
 @pytest.fixture(scope="module")
@@ -156,16 +140,7 @@ def test_export_yaml_of_raytrace_is_refused(calibrated, session, tmp_path):
 def test_refusal_exits_1_and_stores_nothing(tmp_path):
     truth = perturbed_raytrace_truth()
     data = synthetic_views(truth, np.random.default_rng(22), n_images=3)
-    path = tmp_path / "few.h5"
-    with edit_session(path, create=True) as w:
-        w.set_metadata(image_size=(640, 480), split=320)
-        for key in sorted({v.board for v in data.views}):
-            w.write_board(_spec(key), _spec(key))
-        w.write_detections(
-            Detection(v.name, _spec(v.board), h, v.ids[h].astype(np.int32), v.pixels[h])
-            for v in data.views
-            for h in Half
-        )
+    path = write_session(tmp_path / "few.h5", data)
     result = runner.invoke(cli.app, ["calibrate", str(path), "--model", "pinhole"])
     assert result.exit_code == 1
     assert "too few usable calibration images" in result.stderr

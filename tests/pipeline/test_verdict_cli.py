@@ -11,13 +11,15 @@ import json
 
 import numpy as np
 import pytest
-from tests.pipeline.test_calibrate import _spec
-from tests.solvers.calibration_data import perturbed_raytrace_truth, synthetic_views
+from tests.solvers.calibration_data import (
+    perturbed_raytrace_truth,
+    synthetic_views,
+    write_session,
+)
 from typer.testing import CliRunner
 
 from endomeasure import cli
-from endomeasure.conventions import Half
-from endomeasure.io.session import Detection, edit_session, open_session
+from endomeasure.io.session import open_session
 
 runner = CliRunner()
 NOISE_PX = 0.004
@@ -27,18 +29,7 @@ NOISE_PX = 0.004
 def session(tmp_path_factory):
     truth = perturbed_raytrace_truth()
     data = synthetic_views(truth, np.random.default_rng(31), n_images=10, noise_px=NOISE_PX)
-    path = tmp_path_factory.mktemp("verdict") / "probe.h5"
-    with edit_session(path, create=True) as w:
-        w.set_metadata(image_size=(640, 480), split=320)
-        for key in sorted({v.board for v in data.views}):
-            w.write_board(_spec(key), _spec(key))
-        w.write_detections(
-            Detection(v.name, _spec(v.board), h, v.ids[h].astype(np.int32), v.pixels[h], 1.0, "",
-                      covariance=np.tile(np.eye(2) * NOISE_PX**2, (len(v.ids[h]), 1, 1)))
-            for v in data.views
-            for h in Half
-        )  # fmt: skip
-    return path
+    return write_session(tmp_path_factory.mktemp("verdict") / "probe.h5", data, NOISE_PX)
 
 
 @pytest.fixture(scope="module")

@@ -123,3 +123,29 @@ def with_fresh_noise(
             pixels.append(q[keep])
         views.append(ViewDetections(view.name, view.board, tuple(ids), tuple(pixels)))
     return views
+
+
+def board_spec(board_key: str) -> str:
+    """The board spec of a synthetic board name (``sq<square mm>``)."""
+    return f"chessboard:{BOARD_COLS}x{BOARD_ROWS}:{board_key.removeprefix('sq')}"
+
+
+def write_session(path, data: SyntheticSet, sigma_px: float | None = None):
+    """A 640x480 session (split 320) holding a synthetic set's boards and detections; with
+    ``sigma_px`` every corner carries that isotropic noise as its detector covariance."""
+    from endomeasure.io.session import Detection, edit_session
+
+    def covariance(n):
+        return None if sigma_px is None else np.tile(np.eye(2) * sigma_px**2, (n, 1, 1))
+
+    with edit_session(path, create=True) as w:
+        w.set_metadata(image_size=(640, 480), split=320)
+        for key in sorted({v.board for v in data.views}):
+            w.write_board(board_spec(key), board_spec(key))
+        w.write_detections(
+            Detection(v.name, board_spec(v.board), h, v.ids[h].astype(np.int32), v.pixels[h],
+                      1.0, "", covariance=covariance(len(v.ids[h])))
+            for v in data.views
+            for h in Half
+        )  # fmt: skip
+    return path
