@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from _common import ACCURACY, Report, Target, script_parser, stereo_calibrate_peer
+from _samples import detection_errors
 
 EXE = str(Path(sys.executable).with_name("endomeasure"))
 DEFAULT_DESIGNS = "1-40"
@@ -74,32 +75,21 @@ def _run(*args: str) -> tuple[int, str, str]:
 def _detection_floor(session: Path, folder: Path) -> dict:
     """Detected-vs-true RMS corner error and the formal floor over the calibration images."""
     from endomeasure.io.session import open_session
-    from endomeasure.simulate.manifest import load_truth
 
+    halves = [h for h in detection_errors(folder, session, sets=("calib",)) if h.ids.size]
+    dist = np.concatenate([np.linalg.norm(h.errors, axis=1) for h in halves])
+    right = dist < 1.0  # a corner not within 1 px of its own truth has the wrong id
+    e = np.concatenate([h.errors for h in halves])[right]
     with open_session(session) as s:
         calib = set(s.image_names("calib"))
-        detections = [d for d in s.detections() if d.ok and d.image in calib]
-    errors, traces, wrong = [], [], 0
-    for d in detections:
-        truth = load_truth(folder, d.image)
-        pixels = truth["corners"]["pixels"][d.half.label]
-        for i, (cid, q) in enumerate(zip(d.ids, d.pixels, strict=True)):
-            if pixels[cid] is None:
-                wrong += 1
-                continue
-            e = np.asarray(q) - pixels[cid]
-            if np.hypot(*e) > 1.0:
-                wrong += 1
-                continue
-            errors.append(e)
-            if d.covariance is not None:
-                traces.append(np.trace(d.covariance[i]))
-    e = np.array(errors).reshape(-1, 2)
+        covariances = [d.covariance for d in s.detections()
+                       if d.ok and d.image in calib and d.covariance is not None]  # fmt: skip
+    traces = np.concatenate([np.trace(c, axis1=1, axis2=2) for c in covariances] or [[np.nan]])
     return {
         "n_corners": int(len(e)),
-        "wrong_ids": wrong,
+        "wrong_ids": int((~right).sum()),
         "true_floor_px": float(np.sqrt(np.mean(np.sum(e * e, axis=1)))),
-        "formal_px": float(np.sqrt(np.nanmean(traces))) if traces else float("nan"),
+        "formal_px": float(np.sqrt(np.nanmean(traces))),
     }
 
 

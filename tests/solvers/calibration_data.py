@@ -25,6 +25,18 @@ BOARD_COLS, BOARD_ROWS = 11, 8
 SQUARES_MM = (0.5, 1.0, 2.0)  # the paper's three boards
 
 
+def random_tilt(rng: np.random.Generator, max_tilt_deg: float) -> np.ndarray:
+    """A board rotation: tilts uniform in ``+-max_tilt_deg`` about x then y, an in-plane
+    roll within +-10 degrees (3, 3)."""
+    ax, ay = np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg, 2))
+    az = np.radians(rng.uniform(-10.0, 10.0))
+    return (
+        rotation_matrix(np.array([0.0, 0.0, az]))
+        @ rotation_matrix(np.array([0.0, ay, 0.0]))
+        @ rotation_matrix(np.array([ax, 0.0, 0.0]))
+    )
+
+
 def board_corners(cols: int, rows: int, square_mm: float) -> np.ndarray:
     """Board-frame corners in id order, shape (rows * cols, 3), mm."""
     r, c = np.divmod(np.arange(rows * cols), cols)
@@ -77,13 +89,7 @@ def synthetic_views(
         square = 0.5 if z < 18.0 else (1.0 if z < 30.0 else 2.0)
         name = f"sq{square:g}"
         X = boards[name]
-        ax, ay = np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg, 2))
-        az = np.radians(rng.uniform(-10.0, 10.0))
-        R = (
-            rotation_matrix(np.array([0.0, 0.0, az]))
-            @ rotation_matrix(np.array([0.0, ay, 0.0]))
-            @ rotation_matrix(np.array([ax, 0.0, 0.0]))
-        )
+        R = random_tilt(rng, max_tilt_deg)
         centre = np.array([rng.uniform(-0.08, 0.08) * z, rng.uniform(-0.12, 0.12) * z, z])
         t = centre - R @ X.mean(axis=0)
         P = X @ R.T + t

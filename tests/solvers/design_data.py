@@ -20,7 +20,6 @@ from typing import NamedTuple
 import numpy as np
 
 from endomeasure.conventions import Half, Status, in_half
-from endomeasure.geometry.rotations import rotation_matrix
 from endomeasure.models import ModelConfig, RaytraceModel
 from endomeasure.models.raytrace import plane_normal
 from endomeasure.solvers.calibrate import ViewDetections
@@ -173,13 +172,9 @@ def _near_distance(model: RaytraceModel) -> float | None:
 
 
 def _pose(rng, z: float, centre_xy: np.ndarray, board: np.ndarray, max_tilt_deg: float):
-    ax, ay = np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg, 2))
-    az = np.radians(rng.uniform(-10.0, 10.0))
-    R = (
-        rotation_matrix(np.array([0.0, 0.0, az]))
-        @ rotation_matrix(np.array([0.0, ay, 0.0]))
-        @ rotation_matrix(np.array([ax, 0.0, 0.0]))
-    )
+    from tests.solvers.calibration_data import random_tilt
+
+    R = random_tilt(rng, max_tilt_deg)
     centre = np.array([centre_xy[0], centre_xy[1], z])
     return R, centre - R @ board.mean(axis=0)
 

@@ -697,10 +697,7 @@ def _determined(fit, obs: Observations, use: np.ndarray) -> bool:
     whose correlation matrix has no eigenvalue below the verdict's limit (a term that
     trades against others, e.g. a moving pupil against the face distances, would leave
     the scale of every measurement to a combination the data hardly see)."""
-    problem = BundleProblem(fit.model, obs, use, fit.state)
-    x = problem.pack(fit.model, fit.rvecs, fit.tvecs)
-    Jp, Jq, pose_rows = problem.blocks(x)
-    cov = marginal_covariance(Jp, Jq, pose_rows, problem.images.size, 1.0).covariance
+    cov = _marginal(fit, obs, use, 1.0).covariance
     if cov is None:
         return False
     s = np.sqrt(np.diag(cov))
@@ -823,6 +820,14 @@ def _check_fit(fit, inl: np.ndarray, what: str = "the") -> None:
         )
 
 
+def _marginal(fit, obs: Observations, use: np.ndarray, s2: float, problem=None):
+    """The marginal covariance of a fit's free parameters (board poses marginalised out)
+    for residual variance ``s2``; ``problem``: the fit's bundle problem if already built."""
+    problem = problem or BundleProblem(fit.model, obs, use, fit.state)
+    Jp, Jq, pose_rows = problem.blocks(problem.pack(fit.model, fit.rvecs, fit.tvecs))
+    return marginal_covariance(Jp, Jq, pose_rows, problem.images.size, s2)
+
+
 def _finish(
     fitted, obs: Observations, nfev: int, origin: str, obs_cov: np.ndarray
 ) -> CalibrationResult:
@@ -832,7 +837,6 @@ def _finish(
     inl = residuals[use]
     _check_fit(fit, inl)
     problem = BundleProblem(model, obs, use, fit.state)
-    x = problem.pack(model, fit.rvecs, fit.tvecs)
     dof = problem.m - problem.n
     if dof <= 0:
         raise CalibrationError(
@@ -840,8 +844,7 @@ def _finish(
             hint="add images",
         )
     s2 = float(np.sum(inl * inl)) / dof
-    Jp, Jq, pose_rows = problem.blocks(x)
-    mc = marginal_covariance(Jp, Jq, pose_rows, problem.images.size, s2)
+    mc = _marginal(fit, obs, use, s2, problem)
     free_names = tuple(model.PARAM_NAMES[i] for i in problem.free)
     if mc.covariance is None:
         names = ", ".join(free_names[i] for i in mc.undetermined) or "(all)"
@@ -874,4 +877,4 @@ def _finish(
         start=origin,
         obs_covariance=obs_cov,
     )
-    return dataclasses.replace(result, verdict=judge(result, obs_cov, problem.n))
+    return dataclasses.replace(result, verdict=judge(result, problem.n))

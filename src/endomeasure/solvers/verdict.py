@@ -214,8 +214,9 @@ def _structure(
     for h in (0, 1):
         sel = halves == h
         u0, u1, v0, v1 = _half_bounds(h, split, image_size)
-        cu = np.clip(((pixels[sel, 0] - u0) / (u1 - u0) * STRUCTURE_CELLS).astype(int), 0, 3)
-        cv = np.clip(((pixels[sel, 1] - v0) / (v1 - v0) * STRUCTURE_CELLS).astype(int), 0, 3)
+        last = STRUCTURE_CELLS - 1
+        cu = np.clip(((pixels[sel, 0] - u0) / (u1 - u0) * STRUCTURE_CELLS).astype(int), 0, last)
+        cv = np.clip(((pixels[sel, 1] - v0) / (v1 - v0) * STRUCTURE_CELLS).astype(int), 0, last)
         r = residuals[sel]
         for i in range(STRUCTURE_CELLS):
             for j in range(STRUCTURE_CELLS):
@@ -255,20 +256,22 @@ def _undetermined(free_names: Sequence[str], correlation: np.ndarray) -> str | N
     )
 
 
-def judge(result, covariance: np.ndarray, n_unknowns: int) -> Verdict:
+def judge(result, n_unknowns: int) -> Verdict:
     """Judge a calibration (a ``CalibrationResult``) against its detections' noise.
 
     Parameters
     ----------
     result : CalibrationResult
-    covariance : ndarray, shape (M, 2, 2), px^2
-        The detector's formal covariance of every observation (NaN where unknown).
+        With ``obs_covariance``, the detector's formal covariance of every observation
+        (NaN where unknown).
     n_unknowns : int
         Unknowns of the final fit (free parameters and board poses).
     """
     inl = np.asarray(result.inliers, dtype=bool)
     m = 2 * int(inl.sum())
-    formal = noise_floor(np.asarray(covariance)[inl], m, n_unknowns)
+    given = result.obs_covariance
+    cov = np.full((inl.size, 2, 2), np.nan) if given is None else np.asarray(given)
+    formal = noise_floor(cov[inl], m, n_unknowns)
     scatter = scatter_floor(result.obs_board_points[inl], result.obs_image[inl],
                             result.obs_half[inl], result.residuals[inl])  # fmt: skip
     floor = float(np.nanmax([formal, scatter])) if np.isfinite([formal, scatter]).any() else np.nan
