@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     dist = np.array([-0.1, 0.01, 0.0, 0.0, 0.001])
 
     n_points = len(points)
-    model.project(points[:10], "left")  # builds the start table, compiles the kernels
+    model.project(points[:10], "left")  # compiles the kernels
     t_cv2 = median_time(lambda: cv2.projectPoints(points, np.zeros(3), np.zeros(3), K, dist))
     t_ray = median_time(lambda: model.project(points, "left"))
     t_pin = median_time(lambda: pinhole.project(points, "left"))
@@ -62,10 +62,10 @@ def main(argv: list[str] | None = None) -> int:
     t_pin_back = median_time(lambda: pinhole.rays(q, "left"))
     fresh = model.params * 1.01  # > 1e-3 relative: no inherited start data
 
-    def build(fine):
-        return lambda: model.with_params(fresh).aim_map("left", fine=fine)
+    def build(table):
+        return lambda: model.with_params(fresh).aim_map("left", table=table)
 
-    t_start, t_fine = median_time(build(False), runs=3), median_time(build(True), runs=3)
+    t_start, t_table = median_time(build(False), runs=3), median_time(build(True), runs=3)
     valid = np.mean(model.project(points, "left").status == Status.OK)
 
     def row(name, t, peer=t_cv2):
@@ -88,10 +88,10 @@ relative to `cv2.projectPoints` on the same points (higher is faster).
 {row("`raytrace.rays` (backward)", t_ray_back)}
 {row("`pinhole.rays` (backward, iterative undistortion)", t_pin_back)}
 
-{valid:.1%} of the points projected with status OK. A model's ray-aiming start data (a
-polynomial and a look-up table per half, built on first use; models derived by small
-parameter steps inherit it) takes {t_start * 1e3:.0f} ms to build with the coarse table
-and {t_fine * 1e3:.0f} ms with the fine one, which batches of 200,000 points or more use.
+{valid:.1%} of the points projected with status OK. A model's ray-aiming start data
+per half, built on first use (models derived by small parameter steps inherit it), takes
+{t_start * 1e3:.0f} ms to build as the polynomial alone and {t_table * 1e3:.0f} ms with the
+look-up table that batches of 200,000 points or more use.
 Target ({PROJECT_TARGET.source}): `raytrace.project` at least as fast as
 `cv2.projectPoints` (ratio >= {PROJECT_TARGET.limit:g}); this run: {check} (ratio {ratio:.2f}).
 """

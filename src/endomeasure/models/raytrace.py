@@ -473,17 +473,15 @@ class RaytraceModel(CameraModel):
                     new._cache[key] = value
         return new
 
-    def aim_map(self, half: Half, fine: bool = False) -> _AimMap:
-        """The cached ray-aiming start data of a half (polynomial and table).
-
-        ``fine`` selects the fine table, worth its building time only for
-        large batches of points; see ``_LUT_STEP_W``.
+    def aim_map(self, half: Half, table: bool = False) -> _AimMap:
+        """The cached ray-aiming start data of a half: the polynomial, and with ``table``
+        the look-up table too, worth its building time only for large batches of points
+        (``_TABLE_MIN_POINTS``).
         """
         half = Half.parse(half)
-        key = ("aim", half, bool(fine))
+        key = ("aim", half, bool(table))
         if key not in self._cache:
-            step = _LUT_FINE_STEP_W if fine else _LUT_STEP_W
-            self._cache[key] = _fit_aim_map(self, half, step)
+            self._cache[key] = _fit_aim_map(self, half, _LUT_STEP_W if table else None)
         return self._cache[key]
 
 
@@ -521,8 +519,9 @@ def _aim_features(wx, wy, q, exponents):
     return np.stack([wx**i * wy**j * q**k for i, j, k in exponents], axis=-1)
 
 
-def _fit_aim_map(model: RaytraceModel, half: Half, step: float) -> _AimMap:
-    """Fit the start map ``(wx, wy, q) -> (x, y)`` of one half.
+def _fit_aim_map(model: RaytraceModel, half: Half, step: float | None) -> _AimMap:
+    """Fit the start map ``(wx, wy, q) -> (x, y)`` of one half, and tabulate exact
+    solutions with spacing ``step`` unless it is None.
 
     ``w = (P - C)_xy / (P - C)_z`` are the virtual-camera coordinates of a point P seen
     from the point C nearest to all of the half's rays, and ``q = 1 / (P - C)_z`` lets the
@@ -575,18 +574,20 @@ def _fit_aim_map(model: RaytraceModel, half: Half, step: float) -> _AimMap:
     wx_all, wy_all = np.concatenate(wxs), np.concatenate(wys)
     no_lut = (np.full((1, 1, 1, 2), np.nan, dtype=np.float32), np.zeros(3), np.ones(3))
     poly = _AimMap(centre, exponents, coeffs, *no_lut, inner)
+    if step is None:
+        return poly
     return poly._replace(**_build_aim_table(model, half, poly, wx_all, wy_all, step))
 
 
-_LUT_STEP_W = 0.05
-"""Table spacing in virtual-camera tangent units (about 15 px at f = 300 px): cheap
-enough to build for every new model an optimiser makes (build times in
-docs/benchmarks.md, ``bench/bench_models.py``)."""
-_LUT_FINE_STEP_W = 0.015
-"""The fine table for large batches (``_FINE_TABLE_MIN_POINTS``): its closer start saves
-traces, worth its longer building time and memory only for many points (both tables'
-build times and the projection speed in docs/benchmarks.md, ``bench/bench_models.py``)."""
-_FINE_TABLE_MIN_POINTS = 200_000
+_LUT_STEP_W = 0.015
+"""Table spacing in virtual-camera tangent units (about 5 px at f = 300 px)."""
+_TABLE_MIN_POINTS = 200_000
+"""Smallest batch that builds the start table. The table's start saves Broyden traces per
+point (see ``_build_aim_table``), a fraction of a microsecond, against a build that aims
+tens of thousands of nodes: worth
+it only for batches of this order (build times and throughput in docs/benchmarks.md,
+``bench/bench_models.py``). Calibration's few thousand corners per model never build
+it: there the table cost more than all the projections it served."""
 _LUT_DEPTHS_MM = (4.0, 1000.0)  # nearest and farthest slice of the table, from the centre C
 _LUT_SLICES = 10
 
@@ -670,7 +671,7 @@ def aim_rays(
     half = Half.parse(half)
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     if aim is None:
-        aim = model.aim_map(half, fine=points.shape[0] >= _FINE_TABLE_MIN_POINTS)
+        aim = model.aim_map(half, table=points.shape[0] >= _TABLE_MIN_POINTS)
     xy = np.empty((points.shape[0], 2))
     status = np.empty(points.shape[0], dtype=STATUS_DTYPE)
     dxy_dp = np.empty((points.shape[0] if jacobian else 0, 2, 3))
