@@ -17,6 +17,7 @@ results are identical):
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -251,6 +252,8 @@ def undistort(xd: np.ndarray, yd: np.ndarray, coeffs, tol, r2_max=None) -> Undis
     shape = np.broadcast(np.asarray(xd), np.asarray(yd)).shape
     xd = np.broadcast_to(np.asarray(xd, dtype=np.float64), shape).reshape(-1)
     yd = np.broadcast_to(np.asarray(yd, dtype=np.float64), shape).reshape(-1)
+    if not any(np.ndim(c) for c in (*coeffs, tol, r2_max)):
+        return _undistort_compiled(xd, yd, coeffs, tol, r2_max, shape)
 
     def per_point(c):  # a scalar, or per-point values as a flat array
         return np.broadcast_to(c, shape).reshape(-1) if np.ndim(c) else c
@@ -295,6 +298,22 @@ def undistort(xd: np.ndarray, yd: np.ndarray, coeffs, tol, r2_max=None) -> Undis
     return Undistortion(x, y, converged.reshape(shape))
 
 
+def _undistort_compiled(xd, yd, coeffs, tol, r2_max, shape) -> Undistortion:
+    """:func:`undistort` for one coefficient set, by the compiled per-point loop."""
+    from endomeasure.geometry._distortion_kernels import undistort_points
+
+    _is_rational(coeffs)  # checks the number of coefficients
+    c = np.zeros(10)
+    c[: len(coeffs)] = [float(v) for v in coeffs]
+    if r2_max is None:
+        r2_max = max_monotonic_radius2(*c[:2], *c[4:8])
+    x, y = np.empty_like(xd), np.empty_like(yd)
+    converged = np.empty(xd.shape, dtype=bool)
+    undistort_points(np.ascontiguousarray(xd), np.ascontiguousarray(yd), c, float(tol),
+                     float(r2_max), UNDISTORT_MAX_ITER, x, y, converged)  # fmt: skip
+    return Undistortion(x.reshape(shape), y.reshape(shape), converged.reshape(shape))
+
+
 def max_monotonic_radius2(k1, k2, k3, k4=0.0, k5=0.0, k6=0.0):
     """Largest ``r^2`` up to which the radial map ``r R(r^2)`` grows (see :func:`distort`).
 
@@ -329,6 +348,7 @@ def max_monotonic_radius2(k1, k2, k3, k4=0.0, k5=0.0, k6=0.0):
     return r2[inverse.reshape(-1)].reshape(k.shape[:-1])
 
 
+@functools.lru_cache(maxsize=4096)  # an optimiser asks again for each trace of a model
 def _max_monotonic_radius2(k1, k2, k3, k4=0.0, k5=0.0, k6=0.0) -> float:
     if not any((k4, k5, k6)):  # a plain polynomial: the derivative's cubic
         roots = np.roots([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]) if any((k1, k2, k3)) else []
