@@ -88,7 +88,9 @@ def detection_errors(root: str | Path, session: str | Path, sets=SETS) -> list[H
             cols = int(truth["board_spec"].split(":")[1].split("x")[0])  # inner corners
             for half in HALVES:
                 det = by_key.get((name, half))
-                true_px = np.array(truth["corners"]["pixels"][half], dtype=float)  # null -> NaN
+                corners = truth["corners"]["pixels"][half]  # null: a corner not seen
+                true_px = np.array([(np.nan, np.nan) if p is None else p for p in corners],
+                                   dtype=float).reshape(-1, 2)  # fmt: skip
                 ids = np.asarray(det.ids, dtype=np.int64) if det is not None else np.zeros(0, int)
                 px = np.asarray(det.pixels, dtype=float) if det is not None else np.zeros((0, 2))
                 out.append(
