@@ -273,6 +273,7 @@ class TruthSet(NamedTuple):
     n_glass: float
     baseline_mm: float
     sets: DesignSet
+    optics: object  # the design's TruthOptics
 
 
 def truth_design_views(seed: int, noise_px: float = 0.04, images: int | None = None) -> TruthSet:
@@ -315,4 +316,4 @@ def truth_design_views(seed: int, noise_px: float = 0.04, images: int | None = N
     )
     baseline = float(drawn["baseline_mm"])
     return TruthSet(summary, (width, height), split, optics.n_glass, baseline,
-                    DesignSet(views, boards, truths, rms))  # fmt: skip
+                    DesignSet(views, boards, truths, rms), optics)  # fmt: skip
