@@ -20,17 +20,16 @@ from endomeasure.conventions import Half, Status
 from endomeasure.solvers.calibrate import calibrate
 
 DESIGN_SEEDS = (1, 2, 3)  # the first three designs: no choice among them
-NOT_CONVERGING = {
-    1: "the start's glass ranking cannot tell the glasses apart on its corner subset and "
-    "the joint fit stops in the glass/distance valley (docs/accuracy.md, random designs)",
-    3: "as design 1: the search keeps n = 1.46 (truth 1.92), the joint fit cannot slide "
-    "along the valley to it",
+NOT_CLEAN = {
+    1: "16 % of the corners are rejected as outliers (Gaussian noise alone gives none): "
+    "the fit leaves parts of the field it does not describe (docs/accuracy.md, random "
+    "designs); the verdict says warning",
 }
-"""Designs whose fit does not reach the noise floor yet: the convergence tests are
-expected to fail on them (strictly: a fix makes them pass and this entry must go); the
-refusal test still runs on them."""
+"""Designs whose fit reaches the noise floor but not a clean verdict yet: that test is
+expected to fail on them (strictly: a fix makes it pass and this entry must go)."""
 NOISE_PX = 0.04  # per axis, a good sub-pixel detector (the issue's 0.034 px RMS)
-IMAGES = 18  # half of each design's 36-pose protocol, spread over its three boards
+IMAGES = None  # the issue's protocol: 36 poses over three boards (with half of them the
+# search does not place the prism of designs 1 and 3: they stop at 2-3 px and are refused)
 RMS_OVER_FLOOR = 1.25  # the issue's acceptance: RMS within 1.25x the noise floor
 GLASS_SIGMAS = 5.0  # the fitted index within this many formal standard deviations
 BASELINE_REL_TOL = 0.01  # the stereo baseline within 1 % (it sets the depth scale)
@@ -62,11 +61,6 @@ def calibrated(request):
     return request.param, drawn, raytrace
 
 
-def _expect_convergence(request, seed):
-    if seed in NOT_CONVERGING:
-        request.node.add_marker(pytest.mark.xfail(reason=NOT_CONVERGING[seed], strict=True))
-
-
 def test_a_fit_off_the_noise_floor_is_refused(calibrated):
     """Converged or not, the verdict tells: never ok or warning above 2x the noise."""
     _, drawn, res = calibrated
@@ -74,17 +68,21 @@ def test_a_fit_off_the_noise_floor_is_refused(calibrated):
         assert res.verdict.level == "failed", (drawn.summary, res.rms, res.verdict)
 
 
-def test_rms_reaches_the_noise_floor_and_says_ok(request, calibrated):
-    seed, drawn, res = calibrated
-    _expect_convergence(request, seed)
+def test_rms_reaches_the_noise_floor(calibrated):
+    _, drawn, res = calibrated
     assert res.start.startswith("a search"), res.start  # from images alone
     assert res.rms <= RMS_OVER_FLOOR * drawn.sets.noise_rms_px, drawn.summary
+
+
+def test_the_verdict_is_ok(request, calibrated):
+    seed, drawn, res = calibrated
+    if seed in NOT_CLEAN:
+        request.node.add_marker(pytest.mark.xfail(reason=NOT_CLEAN[seed], strict=True))
     assert res.verdict.level == "ok", (drawn.summary, res.verdict.reasons)
 
 
-def test_glass_and_baseline_come_back(request, calibrated):
-    seed, drawn, res = calibrated
-    _expect_convergence(request, seed)
+def test_glass_and_baseline_come_back(calibrated):
+    _, drawn, res = calibrated
     std = res.named_std()["n_glass"]
     assert res.model.n_glass == pytest.approx(drawn.n_glass, abs=GLASS_SIGMAS * std)
     grid = (drawn.image_size, drawn.split)
