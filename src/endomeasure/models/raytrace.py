@@ -516,12 +516,7 @@ def _aim_exponents() -> np.ndarray:
 
 def _aim_features(wx, wy, q, exponents):
     """Feature matrix (N, F) of the start map: ``wx^i wy^j q^k`` per exponent row."""
-    top = int(exponents.max()) + 1
-    out = np.ones((np.size(wx), exponents.shape[0]))
-    for axis, a in enumerate((wx, wy, q)):  # a table of powers per variable, then products
-        powers = np.cumprod(np.column_stack([np.ones_like(a)] + [a] * (top - 1)), axis=1)
-        out *= powers[:, exponents[:, axis]]
-    return out
+    return np.stack([wx**i * wy**j * q**k for i, j, k in exponents], axis=-1)
 
 
 def _fit_aim_map(model: RaytraceModel, half: Half, step: float | None) -> _AimMap:
