@@ -12,6 +12,12 @@ the robust per-axis noise ``sigma = 1.4826 * median(|r|)`` (over all residual
 components; never below ``OUTLIER_FLOOR_PX``) is dropped, and the fit is repeated from
 its solution until no new outlier appears. For Gaussian noise a 5-sigma residual length
 has probability exp(-12.5) ~ 4e-6, so clean data lose nothing.
+
+A view most of whose corners fail that test has a wrong pose, not wrong corners (a
+corner detector does not err on a whole board at once): an excluded view's pose is no
+longer refined, so it would stay wrong and its corners lost for good. Before each
+decision such a view's pose is re-fitted alone to all its corners with the model held
+(:func:`_repose`); its corners that then fit take part again.
 """
 
 from __future__ import annotations
@@ -284,10 +290,44 @@ def fit_with_outliers(
         rounds += 1
         model, rvecs, tvecs, state = fit.model, fit.rvecs, fit.tvecs, fit.state
         r = all_residuals(model, obs, rvecs, tvecs, state)
-        length = np.linalg.norm(r, axis=-1)
         sigma = 1.4826 * float(np.nanmedian(np.abs(r[use])))
         threshold = max(outlier_sigmas * sigma, OUTLIER_FLOOR_PX)
-        new_use = use & (length <= threshold)  # NaN (failed) counts as an outlier
+        fit, r, back, spent = _repose(fit, obs, r, threshold, max_nfev)
+        model, rvecs, tvecs, state = fit.model, fit.rvecs, fit.tvecs, fit.state
+        nfev += spent
+        length = np.linalg.norm(r, axis=-1)
+        new_use = (use | back) & (length <= threshold)  # NaN (failed) counts as an outlier
         if np.array_equal(new_use, use) or rounds > max_rounds:
             return OutlierFit(fit, r, use, threshold, nfev, rounds)
         use = new_use
+
+
+def _repose(fit: Fit, obs: Observations, r: np.ndarray, threshold: float, max_nfev: int):
+    """Re-fit the pose of every view with most of its corners above ``threshold``, the
+    model held, to all the view's corners; keep a new pose that fits more of them.
+
+    Returns the fit with the new poses, the residuals ``r`` updated, the observations of
+    re-posed views (which may take part again) and the evaluations spent.
+    """
+    length = np.linalg.norm(r, axis=-1)
+    bad = ~(length <= threshold)
+    back = np.zeros(obs.image.size, dtype=bool)
+    nfev = 0
+    held = fit.model.with_config(fixed=frozenset(fit.model.PARAM_NAMES))
+    rvecs, tvecs, state = fit.rvecs.copy(), fit.tvecs.copy(), fit.state
+    for image in np.unique(obs.image[bad]):
+        rows = obs.image == image
+        if bad[rows].mean() <= 0.5:
+            continue
+        posed = refine(held, obs, rvecs, tvecs, rows, max_nfev, state)
+        nfev += posed.nfev
+        r_new = all_residuals(fit.model, obs, posed.rvecs, posed.tvecs, posed.state)[rows]
+        if np.sum(np.linalg.norm(r_new, axis=-1) <= threshold) > np.sum(~bad[rows]):
+            rvecs[image], tvecs[image] = posed.rvecs[image], posed.tvecs[image]
+            state = posed.state
+            r = r.copy()
+            r[rows] = r_new
+            back |= rows
+    if back.any():
+        fit = fit._replace(rvecs=rvecs, tvecs=tvecs, state=state)
+    return fit, r, back, nfev
