@@ -21,7 +21,7 @@ from endomeasure.solvers.calibrate import calibrate
 
 DESIGN_SEEDS = (1, 2, 3)  # the first three designs: no choice among them
 NOT_CLEAN = {
-    1: "16 % of the corners are rejected as outliers (Gaussian noise alone gives none): "
+    1: "14 % of the corners are rejected as outliers (Gaussian noise alone gives none): "
     "the fit leaves parts of the field it does not describe (docs/accuracy.md, random "
     "designs); the verdict says warning",
 }
