@@ -584,10 +584,10 @@ _LUT_STEP_W = 0.015
 _TABLE_MIN_POINTS = 200_000
 """Smallest batch that builds the start table. The table's start saves Broyden traces per
 point (see ``_build_aim_table``), a fraction of a microsecond, against a build that aims
-tens of thousands of nodes: worth
-it only for batches of this order (build times and throughput in docs/benchmarks.md,
-``bench/bench_models.py``). Calibration's few thousand corners per model never build
-it: there the table cost more than all the projections it served."""
+tens of thousands of nodes: worth it only for batches of this order (build times and
+throughput in docs/benchmarks.md, ``bench/bench_models.py``). Calibration's few
+thousand corners per model never build it: there the table cost more than all the
+projections it served."""
 _LUT_DEPTHS_MM = (4.0, 1000.0)  # nearest and farthest slice of the table, from the centre C
 _LUT_SLICES = 10
 
