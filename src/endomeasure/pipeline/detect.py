@@ -1,8 +1,8 @@
 """``endomeasure detect``: board corners in both halves of many images, into the session.
 
 Steps: expand the given paths; read and decode every file (per-file errors are results,
-not exceptions); fix the split (the session's stored split, a given column, or the
-median of the per-image band estimates of :func:`endomeasure.features.split.find_split`);
+not exceptions); fix the split (the session's stored split, a given column, or the band
+fitted to all images at once by :func:`endomeasure.features.split.find_split_in_set`);
 detect in both halves of every image (:func:`endomeasure.features.detect.detect_split_image`);
 then store images, board, split and detections in one atomic session edit. Reading and
 detection run in ``workers`` processes (``concurrent.futures.ProcessPoolExecutor``);
@@ -159,13 +159,14 @@ def _read_task(
     split: int | None = None,
     method: str | None = None,
 ):
-    """Read and decode one file; estimate its split, or detect when the split is known.
+    """Read and decode one file; gather its split evidence, or detect when the split is
+    known.
 
-    Never raises for a bad file: returns ``(path, record, split_estimate, error,
+    Never raises for a bad file: returns ``(path, record, split_evidence, error,
     detection)`` with ``error`` set instead.
     """
     from endomeasure.features.detect import detect_split_image
-    from endomeasure.features.split import find_split
+    from endomeasure.features.split import split_evidence
     from endomeasure.io.images import read_image_file
 
     try:
@@ -175,7 +176,7 @@ def _read_task(
     estimate = detection = None
     if want_split:
         try:
-            estimate = find_split(record.pixels).split
+            estimate = split_evidence(record.pixels)
         except EndomeasureError:
             estimate = None
     if board is not None and split is not None and 0 < split < record.pixels.shape[1]:
@@ -284,20 +285,25 @@ def _check_reads(reads, stored_size, stored_images, results):
 
 
 def _choose_split(given_split, stored_split, estimates, records):
-    """The split to use and where it came from."""
+    """The split to use and where it came from: the band fitted to the evidence of every
+    usable image at once (the band is fixed, the scene moves)."""
+    from endomeasure.features.split import find_split_in_set
+
     if given_split is not None:
         return given_split, "given"
     if stored_split is not None:
         return stored_split, "session"
-    estimates = [e for e in estimates if e is not None]
-    if estimates:
-        return int(np.round(np.median(estimates))), "auto"
-    if records:
+    if not records:
+        return None, "auto"
+    size = (int(records[0].pixels.shape[1]), int(records[0].pixels.shape[0]))
+    evidence = [e for e in estimates if e is not None and tuple(e.image_size) == size]
+    try:
+        return find_split_in_set(evidence).split, "auto"
+    except BadInputError as exc:
         raise BadInputError(
-            f"no dark band between the halves found in any of the {len(records)} images",
+            f"{exc.what} (over the {len(records)} images)",
             hint="give the first column of the right half with --split COLUMN",
-        )
-    return None, "auto"
+        ) from None
 
 
 class _Snapshot(NamedTuple):
