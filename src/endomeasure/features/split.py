@@ -25,27 +25,38 @@ Method
    normalised score; the column with the most votes is the band (the band is a valley
    at every scale from its own width up, a gap between two boards only at large ones).
    The whole width is searched; the border columns, with nothing beyond them, are not.
-3. Fit (``_BandFit``): the model above on every profile of every image within ``X`` plus
-   a margin of the band, with ``S`` linear on each side of ``a`` per profile, ``T``
-   piecewise linear in ``|x|`` with knots ``X/8`` apart (shared by all profiles), ``b``
-   shared; ``a_k`` per row band by a grid search of the weighted squared residual (robust:
-   a profile's residuals are scaled by their own median, a sample above five of those
-   scales is ignored, so scene edges inside the window do not pull), ``T`` and ``b`` by
-   linear least squares in turn, ``X`` three times the half-depth half-width of ``T``.
-   The windows are re-centred on the fitted apex line after the first passes.
-4. The apex line ``a(v)``: a weighted quadratic through the row bands' ``a_k`` (weights
-   from the cost's curvature, bands off the line by more than 3 sigma and 1 px dropped);
-   its value at the middle row is the band centre and ``split = floor(centre + 1)``
-   (the half boundary ``u = split - 0.5`` within half a pixel of it), as the simulator's
-   truth ``TruthOptics.apex_split`` defines it.
+3. Fit (``_BandFit``): the model above on every profile of every image near the band,
+   with ``S`` linear on each side of ``a`` per profile (a pixel on a side by the share of
+   its box there), ``T`` piecewise linear in ``|x|`` with knots ``X/8`` apart, its dip
+   never growing away from the apex (a blurred shadow has one minimum), shared by all
+   profiles, and ``b`` shared, never above the darkest row-band mean. A sample's error is
+   its pixel noise and ``SCENE_MISFIT`` of its light (so that one bright edge next to
+   the band cannot outvote every image). ``a_k`` per row band by a grid search of the
+   squared residuals, each capped at ``OUTLIER_SCALES^2``, with each candidate's sides
+   refitted without the samples beyond that (scene the model cannot explain); ``T`` and
+   ``b`` by linear least squares in turn. The extent ``X`` (how far the dip reaches):
+   trial fits on a geometric scan of ``X``; where the fitted dip's half-width ``h``
+   makes ``2.5 h / X`` fall through 1 (the largest such ``X``), then ``X = 2.5 h``
+   (``EXTENT_PER_HALF_WIDTH``). The first pass follows the band from the middle row band
+   outwards; the later ones re-centre every window on the fitted apex line.
+4. The apex line ``a(v)``: a quadratic through the row bands' ``a_k``, weighted by their
+   information (the cost's curvature) with one extra variance for all that brings the
+   reduced chi-square to 1 (the bands' systematic scatter), and by a Gaussian in the
+   distance from the middle row (``MIDDLE_WEIGHT_WIDTH``); bands off the line by more
+   than 3 sigma and 1 px are dropped one at a time. Its value at the middle row is the
+   band centre and ``split = floor(centre + 1)`` (the half boundary ``u = split - 0.5``
+   within half a pixel of it), as the simulator's truth ``TruthOptics.apex_split``
+   defines it.
 
 How it fails
 ------------
 A :class:`~endomeasure.errors.BadInputError` suggesting ``--split`` when no column is a
-valley at any scale (a uniform image), or when the fitted band is not significant: its
-depth under twice its noise-derived uncertainty (a featureless or noise-only image).
-One image can be fooled by a dark vertical stripe in the scene; over an image set the
-median over images removes what moves.
+valley at any scale (a uniform image); when the band fitted is less than
+``MIN_VALLEY_SIGMAS`` darker than both its sides (noise, smooth vignetting: no band);
+or when it is as wide as allowed (``MAX_BAND_FRACTION``). One image can be fooled by a
+dark vertical stripe in the scene; over an image set the median over the images in the
+coarse search and the fit's robust costs discount what moves. Figures on random
+designs: ``bench/accuracy_split.py`` (``docs/accuracy.md``, section ``split-designs``).
 """
 
 from __future__ import annotations
@@ -77,7 +88,8 @@ MAX_BAND_FRACTION = 0.25
 KNOTS = 8
 """Knots of the band's transmission profile ``T(|x|)`` over ``[0, X)``."""
 OUTLIER_SCALES = 5.0
-"""A sample further than this many of its profile's residual scales is ignored."""
+"""A sample further off the band model than this many of its errors is scene the model
+cannot explain: it costs this many squared, and no more."""
 MIDDLE_WEIGHT_WIDTH = 0.5
 """The split is the apex image at the middle row: row bands count with a Gaussian weight
 in their distance from it of this many half-heights (the ends, where vignetting leaves
@@ -93,8 +105,10 @@ dip is back within 1.3 % of full light there. The fitted extent ``X`` is where t
 dip's half-width is ``X / 2.5``: a shorter ``X`` truncates the dip (its half-width comes
 out above ``X / 2.5``), a longer one lets the scene's shading into it (below)."""
 SCENE_MISFIT = 0.04
-"""How far a profile's scene departs from linear across the band's window, as a
-fraction of its light: the floor of every sample's error."""
+"""How far a profile's scene may depart from the model (linear on each side across the
+band's window), as a fraction of its light: added to every sample's pixel noise (without
+it one bright board edge next to the band pulls the fit; ``bench/accuracy_split.py
+--scene-misfit`` measures other values)."""
 MIN_EXTENT_PX = 4.0
 EXTENT_SCAN_STEP = 1.25
 _TRUNCATED_HALF_NORMAL_MEAN = 0.6573  # E[|z| : |z| < 1.645], z ~ N(0, 1)
@@ -121,7 +135,8 @@ class SplitEstimate:
     slope : float
         ``du/dv`` of the apex image at the middle row (0 for a vertical band).
     centre_sigma_px : float, px
-        Standard error of ``centre_px`` from the fit (pixel noise only).
+        Standard error of ``centre_px``: the row bands' noise and their scatter about
+        the apex line.
     images : int
         Images the estimate combines.
     significance : float
@@ -500,7 +515,6 @@ class _BandFit:
         self.apex = self.centres.copy()
         self.information = np.zeros(len(rows))
         self.knots = 0.9 * np.exp(-0.5 * (3.0 * np.arange(KNOTS) / KNOTS) ** 2)
-        self._shape_normal = None
 
     @property
     def max_extent(self) -> float:
@@ -625,7 +639,6 @@ class _BandFit:
             return
         normal += 1e-9 * np.trace(normal) * np.eye(KNOTS)
         self.knots = _monotone_dip(normal, (a.T * w) @ y)
-        self._shape_normal = normal
         # dark level: what the band leaves when the sides' light is removed
         num = den = 0.0
         for k, columns, x, level, weight in pieces:
@@ -647,14 +660,6 @@ class _BandFit:
         i = int(below[0])
         a, b = dip[i - 1], dip[i]
         return float(x[i - 1] + (a - fraction * dip[0]) / (a - b) * (x[i] - x[i - 1]))
-
-    def depth(self) -> tuple[float, float]:
-        """Depth of the dip ``1 - T(0)`` and its standard error from the shape fit."""
-        normal = getattr(self, "_shape_normal", None)
-        if normal is None:
-            return 0.0, float("inf")
-        covariance = np.linalg.inv(normal)
-        return float(self.knots[0]), float(np.sqrt(max(covariance[0, 0], 0.0)))
 
     def _fit_line(self) -> _Line | None:
         """The apex image through the row bands' columns (module notes, 4)."""
@@ -736,6 +741,4 @@ def _fit_band(profiles, noise, rows, column: int, width: int) -> tuple[_BandFit,
             chosen = float(np.exp(np.log(extents[j - 1]) + t * np.log(EXTENT_SCAN_STEP)))
             break
     fit = _BandFit(profiles, noise, rows, column, chosen, width)
-    fit.scan = list(zip(extents, ratios, strict=True))
-    fit.scan_choice = chosen
     return fit, fit.run()
