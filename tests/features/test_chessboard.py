@@ -1,4 +1,4 @@
-"""Chessboard detection: canonical ids, accuracy against exact corners, refinement."""
+"""Chessboard detection: ids at any rotation, accuracy against exact corners, refinement."""
 
 from __future__ import annotations
 
@@ -12,9 +12,16 @@ from endomeasure.features.boards import parse_board_spec
 from endomeasure.features.chessboard import (
     CHESSBOARD_METHODS,
     adaptive_subpix_halfwindow,
+    board_turns,
     canonical_grid,
+    colour_preserving_turns,
     detect_chessboard,
+    orient_grid,
+    square_colour_vote,
+    turn_grid,
+    turned_ids,
 )
+from endomeasure.features.synthetic import BLACK_LEVEL, board_texture
 
 from .conftest import SPLIT, render
 
@@ -92,28 +99,118 @@ def test_default_method_is_accurate_with_noise(rng):
     assert np.sqrt(np.mean(errors**2)) < NOISY_RMS_PX
 
 
-@pytest.mark.parametrize("roll", [178.0, -176.0, 90.0 + 2.0])
-def test_turned_board_gets_the_same_ids_in_both_halves(roll):
-    """A board turned ~180 (or, square grid, ~90) degrees: OpenCV may start the grid at
-    either end; canonical ids must name the same physical corner in both halves."""
-    board = "chessboard:6x6:1" if abs(roll) < 135 else "chessboard:9x6:1"
+# Far enough for the whole board with its margin to fit a 320 px half at any roll.
+ROLLED_DISTANCE_MM = 24.0
+
+
+def physical_turn(pixels: np.ndarray, truth: np.ndarray, cols: int, rows: int) -> int | None:
+    """Which quarter turn of the true ids the detected ids are (by corner position).
+
+    Each detected corner is matched to the nearest true corner; returns the ``k`` with
+    ``turned_ids(cols, rows, k)`` equal to that match, None when no turn explains it.
+    """
+    nearest = np.linalg.norm(pixels[:, None] - truth[None], axis=-1).argmin(axis=1)
+    for k in board_turns(cols, rows):
+        if np.array_equal(turned_ids(cols, rows, k), nearest):
+            return k
+    return None
+
+
+@pytest.mark.parametrize(
+    ("cols", "rows"), [(9, 6), (8, 6), (9, 7), (7, 7), (8, 8), (5, 5), (2, 2), (3, 2)]
+)
+def test_colour_preserving_turns_match_the_printed_board(cols, rows):
+    """The turns that keep the colouring, from the renderer's own board texture."""
+    spec = parse_board_spec(f"chessboard:{cols}x{rows}:1")
+    texture = board_texture(spec)
+    xy = spec.object_points[:, :2]
+    keeping = []
+    for k in board_turns(cols, rows):
+        corners = xy[turned_ids(cols, rows, k)].reshape(rows, cols, 2)
+        centres = (corners[:-1, :-1] + corners[1:, 1:]) / 2
+        dark = texture(centres[..., 0], centres[..., 1]) == BLACK_LEVEL
+        r, c = np.indices(dark.shape)
+        if np.array_equal(dark, (r + c) % 2 == 0):
+            keeping.append(k)
+    assert tuple(keeping) == colour_preserving_turns(cols, rows)
+
+
+@pytest.mark.parametrize("k", [0, 1, 2, 3])
+def test_turn_grid_turns_the_column_direction(k):
+    grid = grid_of(5, 5, 20.0)
+    turned = turn_grid(grid, k)
+    step = turned[0, 1] - turned[0, 0]
+    angle = np.degrees(np.arctan2(step[1], step[0]))
+    assert (angle - 20.0 - 90.0 * k + 180.0) % 360.0 - 180.0 == pytest.approx(0.0, abs=1e-9)
+    # the same re-labelling as the id permutation, and undone by the opposite turn
+    ids = turned_ids(5, 5, k)
+    np.testing.assert_array_equal(turned.reshape(-1, 2), grid.reshape(-1, 2)[ids])
+    np.testing.assert_array_equal(turn_grid(turned, -k), grid)
+
+
+def test_quarter_turn_of_an_oblong_grid_is_a_programming_error():
+    with pytest.raises(ValueError, match="square grid"):
+        turn_grid(grid_of(4, 3, 0.0), 1)
+
+
+@pytest.mark.parametrize(
+    ("board", "roll"),
+    [
+        ("chessboard:9x6:1", 90.0),
+        ("chessboard:9x6:1", 270.0),
+        ("chessboard:9x6:1", 178.0),
+        ("chessboard:9x6:1", 133.0),
+        ("chessboard:7x7:1", 45.0),
+        ("chessboard:7x7:1", 135.0),
+        ("chessboard:7x7:1", 250.0),
+        ("chessboard:8x8:1", 45.0),
+        ("chessboard:8x8:1", 135.0),
+        ("chessboard:8x8:1", 300.0),
+        ("chessboard:8x6:1", 200.0),
+    ],
+)
+def test_ids_at_any_roll_follow_the_colouring(board, roll, rng):
+    """Rolled renders: the ids are the true ids up to exactly the turns the board's
+    colouring cannot see, and the result says which those are."""
     spec = parse_board_spec(board)
-    scene = render(board=board, roll_deg=roll)
-    permutations = []
-    for half in Half:
-        lo = 0 if half is Half.LEFT else SPLIT
-        crop = np.ascontiguousarray(scene.image[:, lo : lo + SPLIT])
-        result = detect_chessboard(crop, spec)
-        assert result.ok
-        pixels = result.pixels + [lo, 0]
-        truth = scene.true_pixels[half]
-        nearest = np.linalg.norm(pixels[:, None] - truth[None], axis=-1).argmin(axis=1)
-        # each detected id sits on one true corner, no two on the same
-        assert len(set(nearest.tolist())) == spec.n_corners
-        permutations.append(nearest)
-    np.testing.assert_array_equal(permutations[0], permutations[1])
-    # and id 0 is the corner nearest the top-left as seen in the image
-    assert np.argmin(scene.true_pixels[Half.LEFT].sum(axis=1)) == permutations[0][0]
+    scene = render(board=board, roll_deg=roll, distance_mm=ROLLED_DISTANCE_MM, noise=2.0, rng=rng)
+    crop = np.ascontiguousarray(scene.image[:, :SPLIT])
+    result = detect_chessboard(crop, spec)
+    assert result.ok, result.failure
+    assert result.turns == colour_preserving_turns(spec.cols, spec.rows)
+    k = physical_turn(result.pixels, scene.true_pixels[Half.LEFT], spec.cols, spec.rows)
+    assert k in result.turns
+    errors = _errors(result, scene.true_pixels[Half.LEFT][turned_ids(spec.cols, spec.rows, k)])
+    assert np.sqrt(np.mean(errors**2)) < NOISY_RMS_PX
+
+
+def test_upright_choice_among_the_turns_the_colouring_leaves(rng):
+    """An 8x8 board (colouring the same every quarter turn) at 30 degrees: id 0 is the
+    corner nearest the top-left, the column direction the one nearest +u."""
+    spec = parse_board_spec("chessboard:8x8:1")
+    scene = render(board="chessboard:8x8:1", roll_deg=30.0, distance_mm=ROLLED_DISTANCE_MM)
+    result = detect_chessboard(np.ascontiguousarray(scene.image[:, :SPLIT]), spec)
+    assert result.turns == (0, 1, 2, 3)
+    assert abs(result.angle_deg) < 45.0
+    truth = scene.true_pixels[Half.LEFT]
+    assert np.linalg.norm(result.pixels[0] - truth[np.argmin(truth.sum(axis=1))]) < 0.5
+
+
+def test_colour_vote_reads_the_squares(chessboard_render):
+    truth = chessboard_render.true_pixels[Half.LEFT].reshape(6, 9, 2)
+    assert square_colour_vote(chessboard_render.image, truth) == (1.0, 0.0)
+    # the half turn of a 9x6 grid swaps the colours
+    assert square_colour_vote(chessboard_render.image, truth[::-1, ::-1]) == (0.0, 1.0)
+
+
+def test_unreadable_colours_leave_every_turn_open():
+    """A 7x7 grid over a flat image: its colours say nothing, so the upright choice
+    stands and all four quarter turns stay open."""
+    truth = grid_of(7, 7, 80.0)
+    grid, angle, turns = orient_grid(np.full((500, 500), 128.0), truth[::-1, ::-1], 7, 7)
+    assert turns == (0, 1, 2, 3)
+    assert angle == pytest.approx(-10.0, abs=1e-9)
+    np.testing.assert_allclose(grid, turn_grid(truth, 3))
 
 
 def test_nothing_found_in_an_empty_image():

@@ -37,13 +37,20 @@ candidates stay selectable by name so that the comparison can be re-run:
     accurate on the simulator's renders (``docs/accuracy.md``, "Refinement on the
     simulator's renders").
 
-Canonical ids (so that the same id in both halves is the same physical corner and
-detections match the simulator's truth): OpenCV may return the grid starting at any end
-(180-degree ambiguity, and for square grids also transposed). The grid is re-ordered so
-that columns increase along +u and rows along +v as seen in the image, which makes id 0
-the inner corner nearest the top-left. This is unique for boards rotated in-plane by
-less than 45 degrees (always the case in our data); at rotations near 90 degrees the
-choice would depend on noise, so such a half is refused with a reason.
+Corner ids at any in-plane rotation (so that the same id in both halves is the same
+physical corner and detections match the simulator's truth). OpenCV may return the grid
+starting at any corner, mirrored or transposed. :func:`orient_grid` makes it
+right-handed in the image, then chooses among the quarter turns that map the grid of
+inner corners onto itself (the half turn; all four for a square grid) the one that the
+board's colouring singles out: the square between corners 0, 1, ``cols`` and
+``cols + 1`` is black (the board frame of ``features/boards.py`` and the simulator). A
+half turn swaps the colours when ``cols + rows`` is odd (9x6), a quarter turn of a
+square grid when its side is odd (7x7), so the colour fixes the ids of a 9x6 board
+completely, those of a 7x7 board up to a half turn, and those of 8x6 or 8x8 boards not
+at all. What the colouring leaves open (the result's ``turns``) is decided by the image:
+columns nearest to +u and rows to +v (id 0 nearest the top-left), and, for the two
+halves of one frame, by :func:`endomeasure.features.detect.agree_halves`, which turns the
+right half's ids so that its grid direction agrees with the left half's.
 """
 
 from __future__ import annotations
@@ -59,13 +66,20 @@ __all__ = [
     "DEFAULT_CHESSBOARD_METHOD",
     "ChessboardResult",
     "adaptive_subpix_halfwindow",
+    "board_turns",
     "canonical_grid",
+    "colour_preserving_turns",
     "detect_chessboard",
+    "orient_grid",
     "refine_corners",
     "refine_symmetric",
     "refine_symmetric_precise",
     "saddle_scores",
+    "square_colour_vote",
     "trim_false_lines",
+    "turn_grid",
+    "turn_result",
+    "turned_ids",
 ]
 
 CHESSBOARD_METHODS = (
@@ -85,9 +99,13 @@ CHESSBOARD_METHODS = (
 )
 DEFAULT_CHESSBOARD_METHOD = "sb-classic-symmetry"
 
-# The in-plane angle (of the board's column direction against +u) beyond which the
-# canonical order is refused: at 90 degrees two orders are equally good.
-MAX_CANONICAL_ANGLE_DEG = 70.0
+# The board's colouring is read when at least this fraction of the pairs of neighbouring
+# inner squares agree on which parity is the dark one (a real board: all of them; glare
+# or a stain may spoil a few, a misdetected grid half of them).
+COLOUR_VOTE_DECISIVE = 0.9
+# Where a square's grey level is sampled: its centre and the points this fraction of the
+# way from the centre to each of its corners (well inside the square under blur).
+COLOUR_SAMPLE_FRACTION = 0.5
 # cornerSubPix: stop after this many iterations or when a corner moves less than this.
 SUBPIX_MAX_ITERATIONS = 100
 SUBPIX_EPSILON_PX = 1e-4
@@ -115,19 +133,128 @@ class ChessboardResult:
         Formal covariance of each corner from the image noise
         (:mod:`endomeasure.features.precision`), for the symmetric refinement only; NaN
         where that fit did not converge.
+    angle_deg : float, degrees
+        In-plane angle of the grid's column direction (id 0 -> 1) from +u, in
+        (-180, 180]; NaN when nothing was found.
+    turns : tuple of int
+        Quarter turns of these ids (:func:`turn_grid`) that the board cannot tell apart
+        from them: (0,) when the colouring fixes the ids, (0, 2) or (0, 1, 2, 3)
+        otherwise.
     """
 
     pixels: np.ndarray
     failure: str | None = None
     covariance: np.ndarray | None = None
+    angle_deg: float = float("nan")
+    turns: tuple[int, ...] = (0,)
 
     @property
     def ok(self) -> bool:
         return self.failure is None
 
 
+def _unit_steps(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit mean steps of a grid (rows, cols, 2) along its columns and along its rows."""
+    col = np.diff(grid, axis=1).reshape(-1, 2).mean(axis=0)
+    row = np.diff(grid, axis=0).reshape(-1, 2).mean(axis=0)
+    return col / np.linalg.norm(col), row / np.linalg.norm(row)
+
+
+def _column_angle(grid: np.ndarray) -> float:
+    """Angle of a grid's column direction from +u (towards +v), degrees, (-180, 180]."""
+    e_col, _ = _unit_steps(grid)
+    return float(np.degrees(np.arctan2(e_col[1], e_col[0])))
+
+
+def _right_handed(grid: np.ndarray) -> np.ndarray:
+    """The grid, flipped along its columns if its steps form a mirrored pair in the image.
+
+    Image axes (u right, v down): a board seen from its printed side (board z away from
+    the camera) has ``cross(e_col, e_row) > 0``.
+    """
+    e_col, e_row = _unit_steps(grid)
+    if e_col[0] * e_row[1] - e_col[1] * e_row[0] < 0:
+        return grid[:, ::-1]
+    return grid
+
+
+def board_turns(cols: int, rows: int) -> tuple[int, ...]:
+    """Quarter turns that map a grid of ``cols`` x ``rows`` inner corners onto itself."""
+    return (0, 1, 2, 3) if cols == rows else (0, 2)
+
+
+def colour_preserving_turns(cols: int, rows: int) -> tuple[int, ...]:
+    """The turns of :func:`board_turns` that also keep the board's colouring.
+
+    Notes
+    -----
+    Inner square ``(r, c)`` (between corners ``(r, c)`` and ``(r + 1, c + 1)``) is black
+    when ``r + c`` is even. The half turn takes it to ``(rows - 2 - r, cols - 2 - c)``,
+    parity ``r + c + rows + cols``; a quarter turn of an ``n x n`` grid to
+    ``(c, n - 2 - r)``, parity ``r + c + n``. So the half turn keeps the colours when
+    ``cols + rows`` is even, a quarter turn when ``n`` is even.
+    """
+    turns = [0]
+    if cols == rows and cols % 2 == 0:
+        turns += [1, 3]
+    if (cols + rows) % 2 == 0:
+        turns.append(2)
+    return tuple(sorted(turns))
+
+
+def turn_grid(grid: np.ndarray, k: int) -> np.ndarray:
+    """Re-label a right-handed grid so that its column direction turns by ``k`` x 90 deg.
+
+    Parameters
+    ----------
+    grid : ndarray, shape (rows, cols, 2), px
+        Right-handed (:func:`orient_grid`); odd ``k`` needs a square grid.
+    k : int
+        Quarter turns, positive from +u towards +v (clockwise as the image is shown).
+
+    Returns
+    -------
+    ndarray, same shape
+        ``k = 1``: ``new[r, c] = grid[c, n - 1 - r]`` (the new columns run along the old
+        rows, the new rows against the old columns); ``k = 2``: ``grid[::-1, ::-1]``.
+    """
+    k %= 4
+    if k % 2 and grid.shape[0] != grid.shape[1]:
+        raise ValueError(f"a quarter turn needs a square grid, not {grid.shape[:2]}")
+    for _ in range(k):
+        grid = np.swapaxes(grid, 0, 1)[::-1]
+    return np.ascontiguousarray(grid)
+
+
+def turned_ids(cols: int, rows: int, k: int) -> np.ndarray:
+    """Which old id each new id names after :func:`turn_grid` by ``k`` quarter turns.
+
+    Returns
+    -------
+    ndarray, shape (rows * cols,), int64
+        ``old = turned_ids(...)[new]``: the corner that had id ``old`` has id ``new``.
+    """
+    ids = np.arange(rows * cols, dtype=np.int64).reshape(rows, cols, 1)
+    return turn_grid(ids, k).reshape(-1)
+
+
+def _upright(grid: np.ndarray, turns: tuple[int, ...]) -> tuple[np.ndarray, int]:
+    """Of the given turns of a right-handed grid, the one nearest columns +u, rows +v.
+
+    Maximises ``e_col . (1, 0) + e_row . (0, 1)``; ties go to the first turn listed.
+    """
+    best, best_k, best_score = grid, 0, -np.inf
+    for k in turns:
+        candidate = turn_grid(grid, k)
+        e_col, e_row = _unit_steps(candidate)
+        score = e_col[0] + e_row[1]
+        if score > best_score + 1e-12:
+            best, best_k, best_score = candidate, k, score
+    return best, best_k
+
+
 def canonical_grid(grid: np.ndarray) -> tuple[np.ndarray, float]:
-    """Re-order a detected corner grid into the canonical order.
+    """Re-order a detected corner grid into the image's upright order.
 
     Parameters
     ----------
@@ -137,7 +264,8 @@ def canonical_grid(grid: np.ndarray) -> tuple[np.ndarray, float]:
     Returns
     -------
     grid : ndarray, shape (rows, cols, 2), px
-        Columns increase along +u, rows along +v (id 0 nearest the top-left).
+        Columns nearest to +u, rows to +v (id 0 nearest the top-left), whatever the
+        board's colouring says (:func:`orient_grid` reads it).
     angle_deg : float
         In-plane angle of the canonical column direction from +u, degrees.
 
@@ -150,30 +278,107 @@ def canonical_grid(grid: np.ndarray) -> tuple[np.ndarray, float]:
     a non-mirrored view; if the detector returned a mirrored grid (its row and column
     steps form a left-handed pair in the image), it is flipped along its columns first.
     """
-    grid = np.asarray(grid, dtype=np.float64)
+    grid = _right_handed(np.asarray(grid, dtype=np.float64))
+    rows, cols = grid.shape[:2]
+    best, _ = _upright(grid, board_turns(cols, rows))
+    return best, _column_angle(best)
 
-    def steps(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        col = np.diff(g, axis=1).reshape(-1, 2).mean(axis=0)
-        row = np.diff(g, axis=0).reshape(-1, 2).mean(axis=0)
-        return col / np.linalg.norm(col), row / np.linalg.norm(row)
 
-    e_col, e_row = steps(grid)
-    # Image axes (u right, v down): a non-mirrored order has cross(e_col, e_row) > 0.
-    if e_col[0] * e_row[1] - e_col[1] * e_row[0] < 0:
-        grid = grid[:, ::-1]
-    candidates = [grid, grid[::-1, ::-1]]
-    if grid.shape[0] == grid.shape[1]:
-        turned = np.rot90(grid, k=1, axes=(0, 1))
-        candidates += [turned, turned[::-1, ::-1]]
-    best, best_score = grid, -np.inf
-    for candidate in candidates:
-        e_col, e_row = steps(candidate)
-        score = e_col[0] + e_row[1]
-        if score > best_score:
-            best, best_score = candidate, score
-    e_col, _ = steps(best)
-    angle = float(np.degrees(np.arctan2(e_col[1], e_col[0])))
-    return np.ascontiguousarray(best), angle
+def square_colour_vote(gray: np.ndarray, grid: np.ndarray) -> tuple[float, float]:
+    """How clearly the image says which inner squares of a grid are the dark ones.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (height, width)
+    grid : ndarray, shape (rows, cols, 2), px
+
+    Returns
+    -------
+    even_dark, odd_dark : float
+        Fractions of the pairs of neighbouring inner squares in which the square of even
+        parity (``r + c`` even, inner square ``(r, c)`` between corners ``(r, c)`` and
+        ``(r + 1, c + 1)``) is strictly the darker, and in which the odd one is; NaN
+        when the grid has no two neighbouring inner squares. Comparing neighbours, not
+        one threshold, is immune to vignetting and uneven light across the board.
+    """
+    from scipy.ndimage import map_coordinates
+
+    quads = np.stack([grid[:-1, :-1], grid[:-1, 1:], grid[1:, :-1], grid[1:, 1:]])
+    centre = quads.mean(axis=0)
+    points = np.concatenate(
+        [centre[None], centre[None] + COLOUR_SAMPLE_FRACTION * (quads - centre[None])]
+    )
+    coords = [points[..., 1].ravel(), points[..., 0].ravel()]
+    samples = map_coordinates(gray.astype(np.float64), coords, order=1, mode="nearest")
+    level = samples.reshape(points.shape[:-1]).mean(axis=0)
+    r, c = np.indices(level.shape)
+    first_even = (r + c) % 2 == 0
+    pairs = [
+        (level[:, :-1], level[:, 1:], first_even[:, :-1]),
+        (level[:-1, :], level[1:, :], first_even[:-1, :]),
+    ]
+    first = np.concatenate([a.ravel() for a, _, _ in pairs])
+    second = np.concatenate([b.ravel() for _, b, _ in pairs])
+    even_first = np.concatenate([e.ravel() for _, _, e in pairs])
+    if first.size == 0:
+        return float("nan"), float("nan")
+    even, odd = np.where(even_first, first, second), np.where(even_first, second, first)
+    return float(np.mean(even < odd)), float(np.mean(odd < even))
+
+
+def orient_grid(
+    gray: np.ndarray, grid: np.ndarray, cols: int, rows: int
+) -> tuple[np.ndarray, float, tuple[int, ...]]:
+    """Corner ids for a detected grid at any in-plane rotation, from its colouring.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (height, width)
+    grid : ndarray, shape (rows, cols, 2), px
+        Corners in the detector's order, reshaped to the spec's grid.
+    cols, rows : int
+        The board's inner corners.
+
+    Returns
+    -------
+    grid : ndarray, shape (rows, cols, 2), px
+        Right-handed; the square between ids 0, 1, ``cols``, ``cols + 1`` black where the
+        colouring can say so; of the orders left, the upright one (:func:`canonical_grid`).
+    angle_deg : float
+        Angle of the returned column direction from +u, degrees.
+    turns : tuple of int
+        The quarter turns of the returned ids that are as valid
+        (:attr:`ChessboardResult.turns`): :func:`colour_preserving_turns` when the
+        colouring was read, every :func:`board_turns` when it was not (fewer than
+        :data:`COLOUR_VOTE_DECISIVE` of the neighbouring squares agree).
+    """
+    grid = _right_handed(np.asarray(grid, dtype=np.float64))
+    geometric = board_turns(cols, rows)
+    keeping = colour_preserving_turns(cols, rows)
+    allowed = residual = geometric
+    if keeping != geometric:
+        even_dark, odd_dark = square_colour_vote(gray, grid)
+        if even_dark >= COLOUR_VOTE_DECISIVE:
+            allowed = residual = keeping
+        elif odd_dark >= COLOUR_VOTE_DECISIVE:
+            allowed, residual = tuple(k for k in geometric if k not in keeping), keeping
+    best, _ = _upright(grid, allowed)
+    return best, _column_angle(best), residual
+
+
+def turn_result(result: ChessboardResult, cols: int, rows: int, k: int) -> ChessboardResult:
+    """The same detection with its ids turned by ``k`` quarter turns (:func:`turn_grid`)."""
+    if not result.ok or k % 4 == 0:
+        return result
+    order = turned_ids(cols, rows, k)
+    covariance = None if result.covariance is None else result.covariance[order]
+    angle = (result.angle_deg + 90.0 * k + 180.0) % 360.0 - 180.0
+    return dataclasses.replace(
+        result,
+        pixels=result.pixels[order],
+        covariance=covariance,
+        angle_deg=float(180.0 if angle == -180.0 else angle),
+    )
 
 
 def adaptive_subpix_halfwindow(grid: np.ndarray) -> int:
@@ -381,7 +586,7 @@ def trim_false_lines(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
 def detect_chessboard(
     gray: np.ndarray, spec: ChessboardSpec, method: str = DEFAULT_CHESSBOARD_METHOD
 ) -> ChessboardResult:
-    """Find all inner corners of a chessboard in a grey image, canonical ids, refined.
+    """Find all inner corners of a chessboard in a grey image, ids at any rotation, refined.
 
     Parameters
     ----------
@@ -394,8 +599,9 @@ def detect_chessboard(
     Returns
     -------
     ChessboardResult
-        ``pixels`` shape (spec.n_corners, 2) in the coordinates of ``gray``; or a
-        failure reason (the diagnosis of a partial or mismatched board is left to the
+        ``pixels`` shape (spec.n_corners, 2) in the coordinates of ``gray``, ids by
+        :func:`orient_grid` (with the turns the board leaves open); or a failure reason
+        (the diagnosis of a partial or mismatched board is left to the
         caller, which knows the whole half).
     """
     if method not in CHESSBOARD_METHODS:
@@ -419,25 +625,18 @@ def detect_chessboard(
         )
     if raw is None:
         return ChessboardResult(np.empty((0, 2)), failure=NOT_FOUND)
-    grid, angle = canonical_grid(raw)
-    if abs(angle) > MAX_CANONICAL_ANGLE_DEG:
-        return ChessboardResult(
-            np.empty((0, 2)),
-            failure=(
-                f"board turned {angle:.0f} degrees in the image: corner ids would be ambiguous "
-                f"(more than {MAX_CANONICAL_ANGLE_DEG:.0f} degrees)"
-            ),
-        )
+    grid, angle, turns = orient_grid(gray, raw, spec.cols, spec.rows)
+    found = {"angle_deg": angle, "turns": turns}
     pixels = grid.reshape(-1, 2)
     if method.endswith("symmetry"):
         pixels, covariance = refine_symmetric_precise(gray, grid)
-        return ChessboardResult(pixels, covariance=covariance)
+        return ChessboardResult(pixels, covariance=covariance, **found)
     if method == "sb-saddle":
         from endomeasure.features.subpixel import saddle_corners
 
-        return ChessboardResult(saddle_corners(gray, grid).pixels)
+        return ChessboardResult(saddle_corners(gray, grid).pixels, **found)
     if "subpix" in method:
         suffix = method.rsplit("subpix", 1)[1]
         halfwindow = int(suffix) if suffix else adaptive_subpix_halfwindow(grid)
         pixels = refine_corners(gray, pixels, halfwindow)
-    return ChessboardResult(pixels)
+    return ChessboardResult(pixels, **found)
