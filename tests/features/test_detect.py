@@ -7,9 +7,18 @@ import pytest
 
 from endomeasure.conventions import Half, in_half
 from endomeasure.errors import BadInputError
-from endomeasure.features.detect import detect_split_image
+from endomeasure.features.boards import parse_board_spec
+from endomeasure.features.chessboard import (
+    ChessboardResult,
+    colour_preserving_turns,
+    orient_grid,
+    turn_grid,
+)
+from endomeasure.features.detect import agree_halves, detect_split_image, match_turn
+from endomeasure.features.synthetic import render_split_image
 
-from .conftest import CHESSBOARD, IMAGE_SIZE, SPLIT, render
+from .conftest import CHESSBOARD, IMAGE_SIZE, SPLIT, pose_homographies, render
+from .test_chessboard import physical_turn as physical_k
 
 # See test_chessboard: noise-free analytic renders.
 NOISE_FREE_RMS_PX = 0.06
@@ -77,3 +86,130 @@ def test_no_board_and_too_dark(rng):
 def test_split_outside_the_image_is_bad_input(chessboard_render, split):
     with pytest.raises(BadInputError, match="outside the image"):
         detect_split_image(chessboard_render.image, CHESSBOARD, split)
+
+
+# ------------------------------------------------------- left/right id consistency
+
+
+def grid_of(cols: int, rows: int, angle_deg: float, origin=(150.0, 200.0)) -> np.ndarray:
+    """An ideal right-handed grid (rows, cols, 2), columns at ``angle_deg`` from +u."""
+    a = np.radians(angle_deg)
+    e_col = 18.0 * np.array([np.cos(a), np.sin(a)])
+    e_row = 18.0 * np.array([-np.sin(a), np.cos(a)])
+    r, c = np.mgrid[0:rows, 0:cols]
+    return np.asarray(origin) + c[..., None] * e_col + r[..., None] * e_row
+
+
+def oriented(grid: np.ndarray, cols: int, rows: int, image=None) -> ChessboardResult:
+    """A per-half result as detect_chessboard would give it for this raw grid."""
+    image = np.full((600, 600), 128.0) if image is None else image
+    ordered, angle, turns = orient_grid(image, grid, cols, rows)
+    return ChessboardResult(ordered.reshape(-1, 2), angle_deg=angle, turns=turns)
+
+
+def pairs(left, right):
+    return ((left, "left"), (right, "right"))
+
+
+@pytest.mark.parametrize(
+    ("cols", "rows", "left_deg", "right_deg"),
+    [(8, 6, 88.0, 92.0), (8, 6, -91.0, -87.0), (8, 8, 43.0, 47.0), (8, 8, 137.0, 133.0)],
+)
+@pytest.mark.parametrize("raw", ["same", "reversed", "mirrored"])
+def test_halves_astride_the_upright_flip_get_the_same_ids(cols, rows, left_deg, right_deg, raw):
+    """The board near where the upright choice flips, a few degrees apart in the two
+    halves, the right half's raw detector order reversed or mirrored: each half alone
+    picks a different corner 0; agreed, both name every corner alike."""
+    grids = {"left": grid_of(cols, rows, left_deg), "right": grid_of(cols, rows, right_deg)}
+    given = {
+        "same": grids["right"],
+        "reversed": grids["right"][::-1, ::-1],
+        "mirrored": grids["right"][:, ::-1],
+    }[raw]
+    truth = {h: g.reshape(-1, 2) for h, g in grids.items()}
+    left, right = oriented(grids["left"], cols, rows), oriented(given, cols, rows)
+    alone = [
+        physical_k(r.pixels, truth[h], cols, rows) for r, h in ((left, "left"), (right, "right"))
+    ]
+    assert alone[0] != alone[1]  # the case the agreement exists for
+    left, right = agree_halves(left, right, cols, rows)
+    assert left.ok and right.ok
+    ks = [physical_k(r.pixels, truth[h], cols, rows) for r, h in pairs(left, right)]
+    assert ks[0] == ks[1] == alone[0]  # the left half is the reference
+    assert abs((right.angle_deg - left.angle_deg + 180) % 360 - 180) == pytest.approx(4.0)
+
+
+def test_the_half_with_the_colours_read_leads():
+    """7x7: the left half's colours unread (all four turns open), the right's read (half
+    turn open): the left half follows the right."""
+    left = ChessboardResult(grid_of(7, 7, 10.0).reshape(-1, 2), angle_deg=10.0, turns=(0, 1, 2, 3))
+    right_grid = grid_of(7, 7, 100.0)
+    right = ChessboardResult(right_grid.reshape(-1, 2), angle_deg=100.0, turns=(0, 2))
+    agreed_left, agreed_right = agree_halves(left, right, 7, 7)
+    assert agreed_right is right
+    assert agreed_left.angle_deg == pytest.approx(100.0)
+    np.testing.assert_allclose(agreed_left.pixels, turn_grid(grid_of(7, 7, 10.0), 1).reshape(-1, 2))
+
+
+@pytest.mark.parametrize(
+    ("cols", "rows", "turns", "right_deg", "reason"),
+    [
+        (8, 8, (0, 1, 2, 3), 40.0, "board turned 30 degrees from its view in the left half"),
+        (8, 6, (0, 2), 70.0, "repeats every 180 degrees; the halves must agree within 45"),
+        (9, 6, (0,), 190.0, "squares' colours put corner 0 of the board 180 degrees away"),
+    ],
+)
+def test_halves_that_cannot_agree_are_refused_with_the_reason(cols, rows, turns, right_deg, reason):
+    left = ChessboardResult(grid_of(cols, rows, 10.0).reshape(-1, 2), angle_deg=10.0, turns=turns)
+    right_grid = grid_of(cols, rows, right_deg)
+    right = ChessboardResult(right_grid.reshape(-1, 2), angle_deg=right_deg, turns=turns)
+    agreed_left, agreed_right = agree_halves(left, right, cols, rows)
+    assert agreed_left is left
+    assert not agreed_right.ok
+    assert reason in agreed_right.failure
+    assert "\n" not in agreed_right.failure
+
+
+@pytest.mark.parametrize(
+    ("reference", "angle", "turns", "expected"),
+    [
+        (88.0, -88.0, (0, 2), (2, 4.0)),
+        (10.0, 12.0, (0, 2), (0, 2.0)),
+        (-170.0, 175.0, (0,), (0, 15.0)),
+        (45.0, -42.0, (0, 1, 2, 3), (1, 3.0)),
+        (0.0, 180.0, (0,), (0, 180.0)),
+    ],
+)
+def test_match_turn_closed_form(reference, angle, turns, expected):
+    k, gap = match_turn(reference, angle, turns)
+    assert (k, gap) == (expected[0], pytest.approx(expected[1]))
+
+
+@pytest.mark.parametrize(
+    ("board", "left_roll", "right_roll"),
+    [
+        ("chessboard:8x6:1", 88.0, 92.0),
+        ("chessboard:8x8:1", 43.0, 47.0),
+        ("chessboard:7x7:1", 268.0, 272.0),
+        ("chessboard:9x6:1", 268.0, 272.0),
+    ],
+)
+def test_rendered_halves_rolled_apart_get_the_same_ids(board, left_roll, right_roll, rng):
+    """Renders whose two halves see the board rolled 4 degrees apart across the upright
+    flip: detect_split_image gives the same id to the same physical corner."""
+    spec = parse_board_spec(board)
+    centre = ((spec.cols - 1) / 2, (spec.rows - 1) / 2)
+    homographies = {
+        half: pose_homographies(roll, distance_mm=24.0, board_centre_mm=centre)[half]
+        for half, roll in ((Half.LEFT, left_roll), (Half.RIGHT, right_roll))
+    }
+    scene = render_split_image(
+        spec, homographies, IMAGE_SIZE, SPLIT, blur_sigma_px=0.8, noise_sigma=2.0, rng=rng
+    )
+    detection = detect_split_image(scene.image, spec, SPLIT)
+    ks = []
+    for half in detection.halves:
+        assert half.ok, half.failure
+        ks.append(physical_k(half.pixels, scene.true_pixels[half.half], spec.cols, spec.rows))
+    assert ks[0] == ks[1]
+    assert ks[0] in colour_preserving_turns(spec.cols, spec.rows)
