@@ -357,22 +357,69 @@ def add_images(
     ],
     paths: Annotated[
         list[Path] | None,
-        typer.Argument(help="Image files or directories of images.", show_default=False),
+        typer.Argument(
+            help="Image files, directories of images, or video files (.avi, .mp4, .mkv, "
+            ".mov, .mpg, ...: whatever OpenCV decodes).",
+            show_default=False,
+        ),
     ] = None,
     image_set: Annotated[
         str, typer.Option("--set", help="Image set: calib, test or scene.")
     ] = "calib",
+    board: Annotated[
+        str | None,
+        typer.Option(
+            "--board",
+            help="Board spec for picking video frames (default: the session's only board).",
+            show_default=False,
+        ),
+    ] = None,
+    frame_step: Annotated[
+        int | None,
+        typer.Option(
+            "--frame-step",
+            metavar="N",
+            help="Take every N-th video frame instead of picking sharp, distinct frames "
+            "that show the whole board in both halves.",
+            show_default=False,
+        ),
+    ] = None,
+    split: Annotated[
+        str,
+        typer.Option(
+            "--split",
+            help="First column of the right half for checking video frames, or 'auto' (the "
+            "session's split, else found from the clip's prism band).",
+        ),
+    ] = "auto",
     json_output: JsonOption = False,
 ) -> None:
-    """Embed image files in a session (compressed, with their path and SHA-256)."""
+    """Embed image files, or frames picked from videos, in a session (compressed, with
+    their path, SHA-256 and frame number)."""
     from endomeasure.pipeline.images import add_images as run
 
+    split_column = parse_split(split)
     console = _stderr_console()
     with _progress(console, "reading images", enabled=not json_output) as on_progress:
-        report = run(session, paths or [], image_set, on_progress=on_progress)
+        report = run(
+            session,
+            paths or [],
+            image_set,
+            on_progress=on_progress,
+            board=board,
+            frame_step=frame_step,
+            split=split_column,
+        )
     if json_output:
         _print_json(report.to_dict())
         return
+    for video in report.videos:
+        left_out = ", ".join(f"{reason} {n}" for reason, n in video.left_out.items() if n)
+        console.print(
+            f"{video.path}: {video.frames} frames, kept {len(video.picked)}"
+            + (f" (left out: {left_out})" if left_out else ""),
+            markup=False,
+        )
     console.print(
         f"{report.session}: added {len(report.added)} {report.image_set} image(s)"
         + (f", {len(report.unchanged)} already present" if report.unchanged else "")

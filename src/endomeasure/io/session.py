@@ -164,6 +164,9 @@ class ImageRecord:
         One of :data:`IMAGE_SETS`.
     channel_order : str
         ``"gray"``, ``"BGR"`` or ``"BGRA"``; inferred from the shape when empty.
+    frame : int or None
+        Frame number (from 0) in the video ``original_path`` for a frame taken from a
+        video (``sha256`` is then the video file's); None for an image file.
     """
 
     name: str
@@ -172,6 +175,7 @@ class ImageRecord:
     sha256: str
     image_set: str
     channel_order: str = ""
+    frame: int | None = None
 
 
 @dataclass(frozen=True)
@@ -185,6 +189,8 @@ class ImageInfo:
     shape: tuple[int, ...]
     dtype: str
     channel_order: str
+    frame: int | None = None
+    """Frame number in the video ``original_path``; None for an image file."""
 
 
 @dataclass(frozen=True)
@@ -650,6 +656,7 @@ class Session:
             shape=tuple(int(n) for n in dset.shape),
             dtype=str(dset.dtype),
             channel_order=attrs.get("channel_order", ""),
+            frame=None if attrs.get("frame") is None else int(attrs["frame"]),
         )
 
     @_translating_errors
@@ -677,6 +684,7 @@ class Session:
             sha256=info.sha256,
             image_set=info.image_set,
             channel_order=info.channel_order,
+            frame=info.frame,
         )
 
     # boards
@@ -926,6 +934,8 @@ class SessionWriter(Session):
             dset.attrs["set"] = rec.image_set
             dset.attrs["channel_order"] = order
             dset.attrs["units"] = "DN"
+            if rec.frame is not None:
+                dset.attrs["frame"] = int(rec.frame)
             written.append(name)
         return written
 

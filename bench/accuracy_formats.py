@@ -1,0 +1,156 @@
+"""Detection on the sample set stored as other image kinds (issue 16): 16-bit PNG, colour
+JPEG (quality 75) and demosaiced colour JPEG, against the committed 8-bit PNG.
+
+The default preset's calibration and test sets (``sample_sessions/``) are written again
+in each kind, with the same manifest and ground truth, and detected with the
+``endomeasure detect`` a user runs. Per kind:
+
+- detection RMS: RMS over all detected corners of ``|detected - true|`` (px), and its
+  difference from the 8-bit PNG figure (issue 16: within 0.01 px);
+- formal / actual: the RMS of the detector's formal per-corner sigma (from the stored
+  covariance, ``features/precision.py``) over the RMS of the actual per-axis error, and
+  the normalised error ``sqrt(mean(e^T C^-1 e) / 2)`` (1 when the formal covariance
+  describes the error; the detector's small bias adds to it on every kind alike).
+
+Kinds: ``png16`` is the 8-bit image times 257; ``jpeg75`` the grey image as a 3-channel
+BGR JPEG of quality 75 (OpenCV's default 4:2:0 chroma subsampling); ``bayer-jpeg75`` the
+grey image sampled through an RGGB colour-filter mosaic, demosaiced by OpenCV's bilinear
+``COLOR_BayerRG2BGR`` and saved as that JPEG (noise correlated over 2-3 px and 8 x 8
+blocks). Prints a Markdown table (write it in docs/video.md by hand with the command):
+
+    .venv/bin/python bench/accuracy_formats.py [--kinds png8,png16,jpeg75,bayer-jpeg75]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from _common import ROOT
+from _samples import SETS, detect_samples, detection_errors
+from endomeasure.simulate.manifest import MANIFEST_NAME, load_manifest
+
+SAMPLES = ROOT / "sample_sessions"
+KINDS = ("png8", "png16", "jpeg75", "bayer-jpeg75")
+JPEG_QUALITY = 75
+RMS_TOLERANCE_PX = 0.01  # issue 16
+
+
+def convert(grey: np.ndarray, kind: str) -> tuple[bytes, str]:
+    """The file bytes and suffix of an 8-bit grey image stored as ``kind``."""
+    import cv2
+
+    if kind == "png8":
+        ok, buf = cv2.imencode(".png", grey)
+        suffix = ".png"
+    elif kind == "png16":
+        ok, buf = cv2.imencode(".png", grey.astype(np.uint16) * 257)
+        suffix = ".png"
+    elif kind == "jpeg75":
+        colour = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+        ok, buf = cv2.imencode(".jpg", colour, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        suffix = ".jpg"
+    elif kind == "bayer-jpeg75":
+        # a grey scene through an RGGB mosaic is the grey image itself, one channel a pixel
+        colour = cv2.cvtColor(grey, cv2.COLOR_BayerRG2BGR)
+        ok, buf = cv2.imencode(".jpg", colour, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        suffix = ".jpg"
+    else:
+        raise ValueError(f"unknown kind {kind!r}")
+    if not ok:
+        raise RuntimeError(f"cannot encode as {kind}")
+    return buf.tobytes(), suffix
+
+
+def write_kind(kind: str, out: Path) -> Path:
+    """The sample set's calib and test images written as ``kind`` under ``out``."""
+    import cv2
+
+    manifest = load_manifest(SAMPLES)
+    for set_name in list(manifest["sets"]):
+        if set_name not in SETS:
+            del manifest["sets"][set_name]
+    for set_name in SETS:
+        (out / set_name).mkdir(parents=True, exist_ok=True)
+        for item in manifest["sets"][set_name]["images"]:
+            grey = cv2.imread(str(SAMPLES / item["image"]), cv2.IMREAD_UNCHANGED)
+            data, suffix = convert(grey, kind)
+            image = Path(item["image"]).with_suffix(suffix)
+            (out / image).write_bytes(data)
+            item["image"] = str(image)
+            shutil.copy(SAMPLES / item["truth"], out / item["truth"])
+    (out / MANIFEST_NAME).write_text(json.dumps(manifest))
+    return out
+
+
+def stored_covariances(session: Path) -> dict:
+    from endomeasure.conventions import Half
+    from endomeasure.io.session import open_session
+
+    with open_session(session) as s:
+        return {(d.image, Half.parse(d.half).label): d.covariance for d in s.detections() if d.ok}
+
+
+def measure(root: Path, session: Path) -> dict:
+    detect_samples(root, session)
+    covariances = stored_covariances(session)
+    errors, sigmas, chi2 = [], [], []
+    for h in detection_errors(root, session):
+        if not h.found:
+            continue
+        e = h.errors
+        cov = covariances[(h.image, h.half)]
+        good = np.isfinite(e).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
+        e, cov = e[good], cov[good]
+        errors.append(e)
+        sigmas.append(np.sqrt(np.diagonal(cov, axis1=1, axis2=2)))
+        chi2.append(np.einsum("ni,nij,nj->n", e, np.linalg.inv(cov), e))
+    e, s, c = np.concatenate(errors), np.concatenate(sigmas), np.concatenate(chi2)
+    return dict(
+        corners=len(e),
+        rms=float(np.sqrt(np.mean(np.sum(e**2, axis=1)))),
+        rms_axis=float(np.sqrt(np.mean(e**2))),
+        formal_axis=float(np.sqrt(np.mean(s**2))),
+        normalised=float(np.sqrt(np.mean(c) / 2)),
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--kinds", default=",".join(KINDS))
+    parser.add_argument("--keep", type=Path, help="keep the converted sets and sessions here")
+    args = parser.parse_args(argv)
+    kinds = [k for k in args.kinds.split(",") if k]
+    results = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        work = args.keep or Path(tmp)
+        for kind in kinds:
+            root = write_kind(kind, work / kind)
+            session = work / f"{kind}.h5"
+            session.unlink(missing_ok=True)
+            results[kind] = measure(root, session)
+            print(kind, json.dumps(results[kind]), flush=True)
+    base = results.get("png8")
+    print("\n| kind | corners | RMS px | per axis px | RMS - 8-bit PNG px | formal sigma px "
+          "| formal / actual | normalised error |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|")
+    status = 0
+    for kind, r in results.items():
+        diff = r["rms"] - base["rms"] if base else float("nan")
+        if base and abs(diff) > RMS_TOLERANCE_PX:
+            status = 3
+        print(
+            f"| {kind} | {r['corners']} | {r['rms']:.4f} | {r['rms_axis']:.4f} | {diff:+.4f} "
+            f"| {r['formal_axis']:.4f} | {r['formal_axis'] / r['rms_axis']:.2f} "
+            f"| {r['normalised']:.2f} |"
+        )
+    return status
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
