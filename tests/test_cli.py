@@ -10,11 +10,12 @@ import cv2
 import h5py
 import numpy as np
 import pytest
+from tests.io.video_data import BOARD, IMAGE_SIZE, SPLIT, write_clip
 from typer.testing import CliRunner
 
 from endomeasure import __version__, cli
 from endomeasure.conventions import Half
-from endomeasure.io.session import Detection, ModelRecord, Record, edit_session
+from endomeasure.io.session import Detection, ModelRecord, Record, edit_session, open_session
 
 runner = CliRunner()
 
@@ -225,3 +226,66 @@ def test_an_unexpected_exception_is_one_line_calling_itself_a_bug(session, monke
 def test_usage_errors_exit_2():
     assert runner.invoke(cli.app, ["info"]).exit_code == 2
     assert runner.invoke(cli.app, ["no-such-command"]).exit_code == 2
+
+
+# ------------------------------------------------------------------- add-images with video
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    return write_clip(tmp_path_factory.mktemp("clip") / "clip.avi", np.random.default_rng(7))
+
+
+def test_add_images_picks_video_frames_and_stores_their_frame_numbers(tmp_path, clip):
+    session = tmp_path / "s.h5"
+    args = ["add-images", str(session), str(clip.path), "--board", BOARD, "--split", str(SPLIT)]
+    result = runner.invoke(cli.app, [*args, "--json"])
+    assert result.exit_code == 0, result.stderr
+    video = json.loads(result.stdout)["videos"][0]
+    assert {clip.kinds[i] for i in video["picked"]} <= {"sharp", "held"}
+    with open_session(session) as s:
+        infos = s.images_info("calib")
+    assert [info.frame for info in infos] == video["picked"]
+    assert {info.original_path for info in infos} == {str(clip.path)}
+    human = runner.invoke(cli.app, args)
+    assert human.exit_code == 0
+    assert f"kept {len(video['picked'])}" in human.stderr and "blurred" in human.stderr
+
+
+def _refused_without_touching(session, args):
+    before = session.read_bytes() if session.exists() else None
+    result = runner.invoke(cli.app, args)
+    assert result.exit_code == 2
+    assert result.stderr.count("\n") == 1 and result.stderr.startswith("error: ")
+    assert (session.read_bytes() if session.exists() else None) == before
+    return result.stderr
+
+
+def test_add_images_refuses_bad_videos_in_one_line_leaving_the_session(tmp_path, clip, rng):
+    session = tmp_path / "s.h5"
+    write_pngs(tmp_path / "png", ["x"], (IMAGE_SIZE[1], IMAGE_SIZE[0]), rng)
+    added = runner.invoke(cli.app, ["add-images", str(session), str(tmp_path / "png")])
+    assert added.exit_code == 0
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(clip.path.read_bytes()[: clip.path.stat().st_size // 2])
+    assert "truncated" in _refused_without_touching(
+        session, ["add-images", str(session), str(cut), "--board", BOARD]
+    )
+    blank = tmp_path / "blank.avi"
+    writer = cv2.VideoWriter(str(blank), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, IMAGE_SIZE)
+    for level in (90, 100, 110):
+        writer.write(np.full((IMAGE_SIZE[1], IMAGE_SIZE[0], 3), level, np.uint8))
+    writer.release()
+    assert "no frame of the video shows the whole board" in _refused_without_touching(
+        session, ["add-images", str(session), str(blank), "--board", BOARD, "--split", "240"]
+    )
+    other = tmp_path / "other.h5"
+    write_pngs(tmp_path / "small", ["y"], (48, 64), rng)
+    added = runner.invoke(cli.app, ["add-images", str(other), str(tmp_path / "small")])
+    assert added.exit_code == 0
+    assert "session's images are 64x48 px" in _refused_without_touching(
+        other, ["add-images", str(other), str(clip.path), "--frame-step", "2"]
+    )
+    assert "needs the board" in _refused_without_touching(
+        tmp_path / "new.h5", ["add-images", str(tmp_path / "new.h5"), str(clip.path)]
+    )
