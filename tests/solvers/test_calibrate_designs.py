@@ -20,13 +20,6 @@ from endomeasure.conventions import Half, Status
 from endomeasure.solvers.calibrate import calibrate
 
 DESIGN_SEEDS = (1, 2, 3)  # the first three designs: no choice among them
-NOT_CLEAN = {
-    1: "more than 3 % of the corners are rejected as outliers (Gaussian noise alone gives "
-    "none): the fit leaves parts of the field it does not describe (docs/accuracy.md, "
-    "random designs); the verdict says warning",
-}
-"""Designs whose fit reaches the noise floor but not a clean verdict yet: that test is
-expected to fail on them (strictly: a fix makes it pass and this entry must go)."""
 NOISE_PX = 0.04  # per axis, a good sub-pixel detector (the issue's 0.034 px RMS)
 IMAGES = None  # the issue's protocol: 36 poses over three boards (with half of them the
 # search does not place the prism of designs 1 and 3: they stop at 2-3 px and are refused)
@@ -74,10 +67,8 @@ def test_rms_reaches_the_noise_floor(calibrated):
     assert res.rms <= RMS_OVER_FLOOR * drawn.sets.noise_rms_px, drawn.summary
 
 
-def test_the_verdict_is_ok(request, calibrated):
-    seed, drawn, res = calibrated
-    if seed in NOT_CLEAN:
-        request.node.add_marker(pytest.mark.xfail(reason=NOT_CLEAN[seed], strict=True))
+def test_the_verdict_is_ok(calibrated):
+    _, drawn, res = calibrated
     assert res.verdict.level == "ok", (drawn.summary, res.verdict.reasons)
 
 

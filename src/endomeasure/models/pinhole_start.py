@@ -4,9 +4,19 @@ Each half is calibrated on its own with OpenCV (``cv2.calibrateCamera``, Zhang's
 method), giving two virtual cameras and a board pose per image and half; the right
 camera's pose relative to the left is the rotation average and the translation median
 over the images seen in both halves.
+
+Zhang's closed form can fail on one half and not the other (small boards in a wide
+field: the homographies hardly constrain the focal length, and the fit wanders off to a
+local minimum). Each half is therefore also fitted in stages from either half's focal
+length: first with the principal point on the lens axis (the prism's apex images on
+the lens axis, so the split column), square pixels and no tangential terms, then with
+everything free. Each half keeps the calibration of least reprojection RMS on its own
+corners.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
@@ -22,9 +32,19 @@ __all__ = ["initial_pinhole", "mean_rotation"]
 _HINT = "check that the boards are tilted and at several distances"
 
 
-def _calibrate_half(obs: Observations, half: Half, image_size, split):
-    """OpenCV calibration of one half: intrinsics (9,) in full-image pixels and the
-    board pose ``(rvec, tvec)`` of each image seen in the half, by image index."""
+class _HalfCalibration(NamedTuple):
+    intrinsics: np.ndarray  # (9,) fx fy cx cy k1 k2 p1 p2 k3, full-image pixels
+    poses: dict  # image index -> (rvec, tvec) of the board in the half's camera
+    rms: float  # OpenCV's reprojection RMS on the half's corners, px
+
+
+def _calibrate_half(obs: Observations, half: Half, image_size, split, focal=None):
+    """OpenCV calibration of one half (a :class:`_HalfCalibration`).
+
+    ``focal`` (px) starts a staged fit instead of Zhang's closed form: first the
+    principal point on the lens axis (the split column, the middle row), square pixels,
+    no tangential terms; then everything free from there.
+    """
     import cv2
 
     width, height = image_size
@@ -41,15 +61,26 @@ def _calibrate_half(obs: Observations, half: Half, image_size, split):
         imgp.append(q.astype(np.float32).reshape(-1, 1, 2))
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # its parallel reductions differ in the last bits from run to run
+    K, dist, guessed = None, None, 0
     try:
+        if focal is not None:
+            axis = min(max(split - 0.5 - offset, 0.0), size[0] - 1.0)  # OpenCV: inside
+            K = np.array([[focal, 0.0, axis], [0.0, focal, (height - 1) / 2], [0, 0, 1]])
+            guessed = cv2.CALIB_USE_INTRINSIC_GUESS
+            _, K, dist, _, _ = cv2.calibrateCamera(
+                objp, imgp, size, K, np.zeros(5), flags=guessed | cv2.CALIB_FIX_PRINCIPAL_POINT
+                | cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3,
+            )  # fmt: skip
         # radial k1 k2 (stable for ordinary fields), then k3 as well when that polynomial
         # folds back inside the observed field (strong wide-angle distortion)
         for flags in (cv2.CALIB_FIX_K3, 0):
-            rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
-                objp, imgp, size, None, None, flags=flags
-            )
-            if _folded_corners(objp, rvecs, tvecs, dist) == 0:
+            rms, K1, dist1, rvecs, tvecs = cv2.calibrateCamera(
+                objp, imgp, size, None if K is None else K.copy(),
+                None if dist is None else dist.copy(), flags=flags | guessed,
+            )  # fmt: skip
+            if _folded_corners(objp, rvecs, tvecs, dist1) == 0:
                 break
+        K, dist = K1, dist1
     except cv2.error as exc:
         raise CalibrationError(
             f"the initial calibration of the {half.label} half failed "
@@ -68,7 +99,28 @@ def _calibrate_half(obs: Observations, half: Half, image_size, split):
         )
     rv = [np.asarray(r, dtype=np.float64).reshape(3) for r in rvecs]
     tv = [np.asarray(t, dtype=np.float64).reshape(3) for t in tvecs]
-    return intr, dict(zip(images, zip(rv, tv, strict=True), strict=True))
+    return _HalfCalibration(intr, dict(zip(images, zip(rv, tv, strict=True), strict=True)),
+                            float(rms))  # fmt: skip
+
+
+def _calibrate_halves(obs: Observations, image_size, split):
+    """Both halves, each the calibration of least reprojection RMS on its own corners
+    among Zhang's closed form and staged fits from either half's focal length (module
+    docstring)."""
+    own = {half: _calibrate_half(obs, half, image_size, split) for half in Half}
+    focals = sorted({float(c.intrinsics[0]) for c in own.values()})
+    out = []
+    for half in Half:
+        best = own[half]
+        for focal in focals:
+            try:
+                staged = _calibrate_half(obs, half, image_size, split, focal)
+            except CalibrationError:
+                continue
+            if staged.rms < best.rms:
+                best = staged
+        out.append(best)
+    return out
 
 
 def _folded_corners(objp, rvecs, tvecs, dist) -> int:
@@ -102,8 +154,9 @@ def initial_pinhole(ctx: StartContext, base: None = None) -> Start:
         The pair (configuration ``ctx.config``) and ``T_left_board`` per image.
     """
     obs, config = ctx.obs, ctx.config
-    intr_l, poses_l = _calibrate_half(obs, Half.LEFT, config.image_size, config.split)
-    intr_r, poses_r = _calibrate_half(obs, Half.RIGHT, config.image_size, config.split)
+    (intr_l, poses_l, _), (intr_r, poses_r, _) = _calibrate_halves(
+        obs, config.image_size, config.split
+    )
     both = sorted(set(poses_l) & set(poses_r))
     if not both:
         raise CalibrationError("no image shows the board in both halves")

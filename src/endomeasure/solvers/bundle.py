@@ -10,14 +10,20 @@ every model's initialiser alike.
 Outliers: after a fit, a corner whose residual length exceeds ``outlier_sigmas`` times
 the robust per-axis noise ``sigma = 1.4826 * median(|r|)`` (over all residual
 components; never below ``OUTLIER_FLOOR_PX``) is dropped, and the fit is repeated from
-its solution until no new outlier appears. For Gaussian noise a 5-sigma residual length
-has probability exp(-12.5) ~ 4e-6, so clean data lose nothing.
+its solution until the set of corners within the threshold no longer changes. Every
+decision is made on every corner: one dropped by an early, rougher fit comes back when
+the later fit explains it (else the first round's misfit would stay hidden as
+"outliers"). For Gaussian noise a 5-sigma residual length has probability
+exp(-12.5) ~ 4e-6, so clean data lose nothing.
 
 A view most of whose corners fail that test has a wrong pose, not wrong corners (a
 corner detector does not err on a whole board at once): an excluded view's pose is no
 longer refined, so it would stay wrong and its corners lost for good. Before each
-decision such a view's pose is re-fitted alone to all its corners with the model held
-(:func:`_repose`); its corners that then fit take part again.
+decision such a view's pose is re-fitted alone to its corners with the model held
+(:func:`_repose`, by least trimmed squares), from its current pose and from its mirror
+image about the line of sight (the two-fold ambiguity of a small or distant plane's
+pose: both look alike in the image to first order, and a per-half pose start may pick
+the wrong one); its corners that then fit take part again.
 """
 
 from __future__ import annotations
@@ -27,7 +33,12 @@ from typing import NamedTuple
 import numpy as np
 
 from endomeasure.errors import CalibrationError
-from endomeasure.geometry.rotations import rotation_jacobian, rotation_matrix, skew
+from endomeasure.geometry.rotations import (
+    rotation_jacobian,
+    rotation_matrix,
+    rotation_vector,
+    skew,
+)
 from endomeasure.models.base import CameraModel
 from endomeasure.models.start import Fit, Observations
 
@@ -150,6 +161,8 @@ class BundleProblem:
 LSMR_OPTIONS = {"atol": 1e-12, "btol": 1e-12, "maxiter": 200}
 """Tolerances of the inner sparse solver of each trust-region step: tight, because
 inexact steps stall the final convergence (scipy's defaults leave ~1e-6 relative)."""
+RESTART_MIN_GAIN = 1e-6
+"""Relative cost decrease for which a fit stopped by ``xtol`` is started again."""
 _PRECONDITION_RIDGE = 1e-10  # relative ridge keeping the start's normal matrix factorable
 
 
@@ -225,6 +238,18 @@ def refine(
     """
     problem = BundleProblem(model, obs, use, state)
     ls = _least_squares(problem, problem.pack(model, rvecs, tvecs), max_nfev)
+    nfev = ls.nfev
+    # xtol: the trust region shrank to nothing. In a long, narrow valley (the glass index
+    # against the face tilts) that can happen far from the minimum, because the start's
+    # whitening no longer fits the valley: start again, whitened where it stopped, while
+    # that still lowers the cost
+    while ls.status == 3 and nfev < max_nfev:
+        again = _least_squares(problem, ls.x, max_nfev - nfev)
+        nfev += again.nfev
+        if not again.cost < ls.cost * (1.0 - RESTART_MIN_GAIN):
+            break
+        ls = again
+    ls.nfev = nfev
     try:
         fitted, rv, tv = problem.unpack(ls.x)
     except ValueError as exc:
@@ -292,11 +317,10 @@ def fit_with_outliers(
         r = all_residuals(model, obs, rvecs, tvecs, state)
         sigma = 1.4826 * float(np.nanmedian(np.abs(r[use])))
         threshold = max(outlier_sigmas * sigma, OUTLIER_FLOOR_PX)
-        fit, r, back, spent = _repose(fit, obs, r, threshold, max_nfev)
+        fit, r, spent = _repose(fit, obs, r, threshold, max_nfev)
         model, rvecs, tvecs, state = fit.model, fit.rvecs, fit.tvecs, fit.state
         nfev += spent
-        length = np.linalg.norm(r, axis=-1)
-        new_use = (use | back) & (length <= threshold)  # NaN (failed) counts as an outlier
+        new_use = np.linalg.norm(r, axis=-1) <= threshold  # NaN (failed) counts as an outlier
         if np.array_equal(new_use, use) or rounds > max_rounds:
             return OutlierFit(fit, r, use, threshold, nfev, rounds)
         use = new_use
@@ -304,30 +328,81 @@ def fit_with_outliers(
 
 def _repose(fit: Fit, obs: Observations, r: np.ndarray, threshold: float, max_nfev: int):
     """Re-fit the pose of every view with most of its corners above ``threshold``, the
-    model held, to all the view's corners; keep a new pose that fits more of them.
+    model held, robustly to the view's corners (:func:`_trimmed_pose`), from its pose and
+    from that pose mirrored (:func:`mirrored_pose`); keep the new pose that fits the most
+    of them, if more than before.
 
-    Returns the fit with the new poses, the residuals ``r`` updated, the observations of
-    re-posed views (which may take part again) and the evaluations spent.
+    Returns the fit with the new poses, the residuals ``r`` updated and the evaluations
+    spent.
     """
     length = np.linalg.norm(r, axis=-1)
     bad = ~(length <= threshold)
-    back = np.zeros(obs.image.size, dtype=bool)
     nfev = 0
     held = fit.model.with_config(fixed=frozenset(fit.model.PARAM_NAMES))
     rvecs, tvecs, state = fit.rvecs.copy(), fit.tvecs.copy(), fit.state
+    changed = False
     for image in np.unique(obs.image[bad]):
         rows = obs.image == image
         if bad[rows].mean() <= 0.5:
             continue
-        posed = refine(held, obs, rvecs, tvecs, rows, max_nfev, state)
-        nfev += posed.nfev
-        r_new = all_residuals(fit.model, obs, posed.rvecs, posed.tvecs, posed.state)[rows]
-        if np.sum(np.linalg.norm(r_new, axis=-1) <= threshold) > np.sum(~bad[rows]):
+        best, fitting = None, np.sum(~bad[rows])
+        centre = obs.board_points[rows].mean(axis=0)
+        for start in ((rvecs[image], tvecs[image]),
+                      mirrored_pose(rvecs[image], tvecs[image], centre)):  # fmt: skip
+            rv, tv = rvecs.copy(), tvecs.copy()
+            rv[image], tv[image] = start
+            posed, r_new, spent = _trimmed_pose(held, obs, rv, tv, rows, max_nfev, state)
+            nfev += spent
+            count = np.sum(np.linalg.norm(r_new, axis=-1) <= threshold)
+            if count > fitting:
+                best, fitting = (posed, r_new), count
+        if best is not None:
+            posed, r_new = best
             rvecs[image], tvecs[image] = posed.rvecs[image], posed.tvecs[image]
             state = posed.state
             r = r.copy()
             r[rows] = r_new
-            back |= rows
-    if back.any():
+            changed = True
+    if changed:
         fit = fit._replace(rvecs=rvecs, tvecs=tvecs, state=state)
-    return fit, r, back, nfev
+    return fit, r, nfev
+
+
+POSE_TRIM_STEPS = 5  # concentration steps of the trimmed pose fit (they converge in 2-3)
+
+
+def _trimmed_pose(held, obs: Observations, rvecs, tvecs, rows: np.ndarray, max_nfev: int, state):
+    """One view's pose, the model ``held``, by least trimmed squares over its ``rows``:
+    fitted to all of them, then repeatedly to the half with the smallest residuals
+    (concentration steps), so that a minority of gross corners cannot pull it. Returns
+    (fit, residuals of ``rows``, evaluations spent)."""
+    posed = refine(held, obs, rvecs, tvecs, rows, max_nfev, state)
+    nfev = posed.nfev
+    r = all_residuals(held, obs, posed.rvecs, posed.tvecs, posed.state)[rows]
+    subset = None
+    for _ in range(POSE_TRIM_STEPS):
+        length = np.where(np.isfinite(r).all(axis=-1), np.linalg.norm(r, axis=-1), np.inf)
+        keep = np.argsort(length, kind="stable")[: max(4, (rows.sum() + 1) // 2)]
+        if subset is not None and np.array_equal(np.sort(keep), subset):
+            break
+        subset = np.sort(keep)
+        use = np.zeros_like(rows)
+        use[np.flatnonzero(rows)[subset]] = True
+        posed = refine(held, obs, posed.rvecs, posed.tvecs, use, max_nfev, posed.state)
+        nfev += posed.nfev
+        r = all_residuals(held, obs, posed.rvecs, posed.tvecs, posed.state)[rows]
+    return posed, r, nfev
+
+
+def mirrored_pose(rvec: np.ndarray, tvec: np.ndarray, centre: np.ndarray):
+    """The other pose of a plane that images alike to first order: the board turned about
+    its point ``centre`` (board frame) so that its normal is mirrored about the line of
+    sight from the frame's origin, its in-plane orientation kept. (A half-turn about the
+    line of sight, then one about the new normal: the offsets across the line of sight
+    are kept, the depth offsets change sign.) Returns (rvec, tvec)."""
+    R = rotation_matrix(np.asarray(rvec, dtype=float))
+    c = R @ centre + tvec
+    sight = c / np.linalg.norm(c)
+    normal = 2.0 * (R[:, 2] @ sight) * sight - R[:, 2]
+    F = rotation_matrix(np.pi * normal) @ rotation_matrix(np.pi * sight)
+    return rotation_vector(F @ R), F @ (tvec - c) + c
