@@ -181,10 +181,12 @@ def frame_evidence(
 
     Notes
     -----
-    Chessboards: ``cv2.findChessboardCorners`` with ``CALIB_CB_FAST_CHECK`` on each half
-    (downscaled above :data:`FAST_CHECK_MAX_SIDE_PX`): it refuses quickly when no board
-    is there and returns only whole boards. ChArUco boards: the full detector, and a half
-    counts when every corner was found.
+    Chessboards: OpenCV's sector-based finder (``findChessboardCornersSB`` with
+    ``CALIB_CB_LARGER``) on each half (downscaled above :data:`FAST_CHECK_MAX_SIDE_PX`):
+    pixel-level corners of whole boards only, a grid of the spec's size and no larger.
+    The classic finder with ``CALIB_CB_FAST_CHECK`` is no faster and misses most sharp
+    halves of the default preset's clips (docs/video.md). ChArUco boards: the full
+    detector, and a half counts when every corner was found.
     """
     spec = parse_board_spec(board)
     grids = []
@@ -203,16 +205,18 @@ def _fast_grid(half: np.ndarray, spec: BoardSpec) -> np.ndarray | None:
 
     if isinstance(spec, ChessboardSpec):
         factor = max(1, int(np.ceil(max(half.shape) / FAST_CHECK_MAX_SIDE_PX)))
-        small = half[::factor, ::factor] if factor > 1 else half
-        flags = (
-            cv2.CALIB_CB_FAST_CHECK | cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        small = np.ascontiguousarray(half[::factor, ::factor]) if factor > 1 else half
+        found, corners, meta = cv2.findChessboardCornersSBWithMeta(
+            small, (spec.cols, spec.rows), cv2.CALIB_CB_LARGER
         )
-        found, corners = cv2.findChessboardCorners(small, (spec.cols, spec.rows), flags=flags)
-        if not found or corners is None:
+        if not found or corners is None or meta is None:
             return None
+        shape = tuple(int(k) for k in meta.shape[:2])
+        if sorted(shape) != sorted((spec.rows, spec.cols)):
+            return None  # a larger grid: another board, not this one whole
         # a sample of the downscaled image covers factor x factor pixels centred on
         # (factor - 1) / 2 in full-resolution pixel coordinates
-        grid = corners.reshape(spec.rows, spec.cols, 2).astype(np.float64)
+        grid = corners.reshape(shape[0], shape[1], 2).astype(np.float64)
         return grid * factor + (factor - 1) / 2.0
     from endomeasure.features.charuco import detect_charuco
 
