@@ -21,8 +21,7 @@ from endomeasure.solvers.calibrate import calibrate
 
 DESIGN_SEEDS = (1, 2, 3)  # the first three designs: no choice among them
 NOISE_PX = 0.04  # per axis, a good sub-pixel detector (the 0.034 px RMS)
-IMAGES = None  # the protocol: 36 poses over three boards (with half of them the
-# search does not place the prism of designs 1 and 3: they stop at 2-3 px and are refused)
+IMAGES = None  # the protocol: 36 poses over three boards
 RMS_OVER_FLOOR = 1.25  # the acceptance: RMS within 1.25x the noise floor
 GLASS_SIGMAS = 5.0  # the fitted index within this many formal standard deviations
 BASELINE_REL_TOL = 0.01  # the stereo baseline within 1 % (it sets the depth scale)
