@@ -9,11 +9,13 @@ import pytest
 from endomeasure.conventions import Half
 from endomeasure.features.boards import parse_board_spec
 from endomeasure.features.frames import (
+    BLUR_RATIO_MAX,
     FrameEvidence,
     board_edge_blur_px,
     frame_evidence,
     outline_motion_px,
     pick_frames,
+    sharp_envelope,
 )
 from endomeasure.features.synthetic import render_split_image
 
@@ -83,7 +85,7 @@ def _evidence(index, shift, blur, seen=(True, True)):
 
 
 def test_pick_keeps_sharp_distinct_frames_and_says_why_not_the_others():
-    size = (640, 480)  # diagonal 800 px: the default 5 % is 40 px
+    size = (640, 480)  # diagonal 800 px: the default 2 % is 16 px
     evidence = [
         _evidence(0, 0.0, 0.8),
         _evidence(1, 10.0, 0.8),  # moved 10 px: too close
@@ -92,6 +94,7 @@ def test_pick_keeps_sharp_distinct_frames_and_says_why_not_the_others():
         _evidence(4, 120.0, 0.8, seen=(True, False)),
         _evidence(5, 5.0, 0.9),  # back near frame 0
         _evidence(6, 200.0, 0.9),
+        FrameEvidence(7, _evidence(7, 300.0, 0.8).grids, 0.85, anisotropy=1.4),  # motion
     ]
     pick = pick_frames(evidence, size)
     assert pick.picked == [0, 3, 6]
@@ -100,8 +103,26 @@ def test_pick_keeps_sharp_distinct_frames_and_says_why_not_the_others():
         2: "blurred",
         4: "board not fully seen in the right half",
         5: "pose too close to a kept frame",
+        7: "blurred",
     }
-    assert pick.count("pose too close") == 2
+    assert pick.count("pose too close") == 2 and pick.count("blurred") == 2
     # the reference is the clip's, not a constant: the same clip blurred twice over
-    blurred = [FrameEvidence(e.index, e.grids, 2 * e.blur_px) for e in evidence]
+    blurred = [FrameEvidence(e.index, e.grids, 2 * e.blur_px, e.anisotropy) for e in evidence]
     assert pick_frames(blurred, size).picked == [0, 3, 6]
+
+
+def test_the_sharp_envelope_follows_defocus_over_the_board_scale(rng):
+    """Defocus: blur^2 = a + (k (s - s_focus))^2 in the board scale s; frames blurred by
+    motion lie above and do not pull the envelope up."""
+    scale = rng.uniform(10.0, 40.0, 60)
+    defocus = np.sqrt(0.5**2 + (0.02 * (scale - 22.0)) ** 2)
+    blur = defocus * (1.0 + rng.normal(0.0, 0.02, 60))  # the measure's scatter
+    moving = rng.random(60) < 0.3
+    blur[moving] = np.hypot(blur[moving], rng.uniform(0.5, 2.0, moving.sum()))
+    envelope = sharp_envelope(scale, blur)
+    np.testing.assert_allclose(envelope, defocus, rtol=0.06)  # the lower side of the scatter
+    # every frame without motion passes as sharp, every one with this much does not
+    assert np.all(blur[~moving] <= BLUR_RATIO_MAX * envelope[~moving])
+    assert np.all(blur[moving] > BLUR_RATIO_MAX * envelope[moving])
+    # with few frames, the clip's least blur
+    np.testing.assert_allclose(sharp_envelope(scale[:3], blur[:3]), blur[:3].min())

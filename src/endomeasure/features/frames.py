@@ -3,12 +3,15 @@ halves, and a pose distinct from the frames already kept.
 
 A clip is read once to gather each frame's :class:`FrameEvidence` (a fast full-board
 check per half and the board's edge blur), then :func:`pick_frames` decides on the whole
-clip at once, because "sharp" is relative to the clip: its sharpest frames set the
-reference a frame's blur is compared with.
+clip at once, because "sharp" is relative to the clip: its sharpest frames at each board
+scale set the reference a frame's blur is compared with.
 
 Blur is measured where it matters, on the board's checker edges, for each of the two
-edge families (the grid's rows and columns) separately: motion blurs the edges across
-the motion and leaves the others sharp, which one isotropic figure would average away.
+edge families (the grid's rows and columns) separately. Defocus blurs both alike, and
+changes with the distance, hence with the board's scale in the image; motion blurs the
+edges across the motion and leaves the others sharp. So a frame is blurred when its
+edges are wider than the clip's sharpest at the same scale, or when the two families
+differ.
 """
 
 from __future__ import annotations
@@ -21,30 +24,36 @@ import numpy as np
 from endomeasure.features.boards import BoardSpec, ChessboardSpec, parse_board_spec
 
 __all__ = [
+    "ANISOTROPY_MAX",
     "BLUR_RATIO_MAX",
     "MIN_MOTION",
     "FrameEvidence",
     "FramePick",
     "board_edge_blur_px",
+    "edge_blur_by_family",
     "frame_evidence",
     "pick_frames",
+    "sharp_envelope",
 ]
 
-BLUR_RATIO_MAX = 1.5
+BLUR_RATIO_MAX = 1.15
 """A frame is sharp when its board's edge blur is at most this multiple of the clip's
-reference (the 10th percentile over the frames that show the board). Defocus alone
-changes the blur by a factor of about 1.4 over an endoscope's working range (default
-preset: PSF sigma 0.55-0.82 px over 10-45 mm, 0.62-0.87 px with the pixel box); motion
-during the exposure of more than about 2 px across an edge exceeds it."""
+sharp envelope at its board scale (:func:`sharp_envelope`): motion adds in quadrature,
+so this lets through a smear of about half the in-focus blur (sigma ``0.57 s``, a box of
+about 1.5 px for the default preset's 0.75 px edges)."""
 
-MIN_MOTION = 0.05
+ANISOTROPY_MAX = 1.15
+"""... and when its two edge families' blurs differ by at most this factor in either
+half: defocus and the lens PSF blur every direction alike (sharp frames of the default
+preset differ by a few per cent), motion only across itself."""
+
+MIN_MOTION = 0.02
 """A frame's pose is distinct when the board's outer corners moved, on average over the
-four corners and both halves, by at least this fraction of the image diagonal from
-every frame kept before it."""
+four corners and both halves, by at least this fraction of the image diagonal (16 px on
+640 x 480) from every frame kept before it."""
 
-REFERENCE_PERCENTILE = 10.0
-"""The clip's sharp reference: this percentile of the blur of the frames with the board
-(robust to a few frames sharper than the rest by noise)."""
+ENVELOPE_ROUNDS = 4
+"""Refits of the sharp envelope to the frames on or below it."""
 
 DERIVATIVE_SIGMA_PX = 1.0
 """Gaussian derivative scale of the blur measure: it keeps the noise out of the second
@@ -68,15 +77,27 @@ class FrameEvidence:
     blur_px : float, px
         The board's edge blur (the larger of the two edge families, the worse half);
         NaN unless both halves show the board.
+    anisotropy : float
+        The larger ratio of the two families' blurs over the halves (1 for defocus).
     """
 
     index: int
     grids: tuple[np.ndarray | None, np.ndarray | None]
     blur_px: float
+    anisotropy: float = 1.0
 
     @property
     def board_seen(self) -> bool:
         return all(g is not None for g in self.grids)
+
+    @property
+    def scale_px(self) -> float:
+        """Mean distance of neighbouring corners over both halves, px (NaN unless seen)."""
+        if not self.board_seen:
+            return float("nan")
+        steps = [np.linalg.norm(np.diff(g, axis=axis), axis=-1).ravel()
+                 for g in self.grids for axis in (0, 1)]  # fmt: skip
+        return float(np.mean(np.concatenate(steps)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,7 +112,8 @@ class FramePick:
         For every frame not kept: ``"board not fully seen in the left half"`` (or right,
         or both), ``"blurred"`` or ``"pose too close to a kept frame"``.
     reference_blur_px : float, px
-        The clip's sharp reference (NaN when no frame shows the board).
+        The clip's sharpest edge blur, the sharp envelope's least value (NaN when no
+        frame shows the board).
     """
 
     picked: list[int]
@@ -103,8 +125,9 @@ class FramePick:
         return sum(r.startswith(reason) for r in self.reasons.values())
 
 
-def board_edge_blur_px(gray: np.ndarray, grid: np.ndarray) -> float:
-    """Gaussian sigma of the board's checker edges, px, the worse of the two edge families.
+def edge_blur_by_family(gray: np.ndarray, grid: np.ndarray) -> tuple[float, float]:
+    """Gaussian sigma of the board's checker edges, px, for the edges along the grid's
+    rows and along its columns.
 
     Parameters
     ----------
@@ -125,27 +148,38 @@ def board_edge_blur_px(gray: np.ndarray, grid: np.ndarray) -> float:
     """
     from scipy.ndimage import gaussian_filter
 
-    gray = np.asarray(gray, dtype=np.float64)
     grid = np.asarray(grid, dtype=np.float64)
-    mask = _board_mask(gray.shape, grid)
+    gray = np.asarray(gray)
+    # only the board's box (with the filters' reach) is filtered
+    reach = int(np.ceil(4 * DERIVATIVE_SIGMA_PX)) + 2
+    spacing = float(np.max(np.linalg.norm(np.diff(grid, axis=1), axis=-1)))
+    lo = np.maximum(np.floor(grid.reshape(-1, 2).min(axis=0) - spacing).astype(int) - reach, 0)
+    hi = np.ceil(grid.reshape(-1, 2).max(axis=0) + spacing).astype(int) + reach + 1
+    box = gray[lo[1] : hi[1], lo[0] : hi[0]].astype(np.float64)
+    local = grid - lo
+    mask = _board_mask(box.shape, local)
     if mask.sum() < 16:
-        return float("nan")
+        return float("nan"), float("nan")
     s0 = DERIVATIVE_SIGMA_PX
-    d = {order: gaussian_filter(gray, s0, order=order) for order in
+    d = {order: gaussian_filter(box, s0, order=order) for order in
          ((0, 1), (1, 0), (0, 2), (1, 1), (2, 0))}  # fmt: skip
     ix, iy = d[(0, 1)][mask], d[(1, 0)][mask]
     ixx, ixy, iyy = d[(0, 2)][mask], d[(1, 1)][mask], d[(2, 0)][mask]
     sigmas = []
-    for along in (grid[:, 1:] - grid[:, :-1], grid[1:] - grid[:-1]):
+    for along in (local[:, 1:] - local[:, :-1], local[1:] - local[:-1]):
         direction = along.reshape(-1, 2).mean(axis=0)
         direction /= np.linalg.norm(direction)
         nx, ny = -direction[1], direction[0]  # the normal of edges running along the lines
         first = np.sum((nx * ix + ny * iy) ** 2)
         second = np.sum((nx * nx * ixx + 2 * nx * ny * ixy + ny * ny * iyy) ** 2)
-        if not second > 0:
-            return float("nan")
-        sigmas.append(np.sqrt(max(first / (2.0 * second) - s0**2, 0.0)))
-    return float(max(sigmas))
+        sigma = np.sqrt(max(first / (2.0 * second) - s0**2, 0.0)) if second > 0 else np.nan
+        sigmas.append(float(sigma))
+    return sigmas[0], sigmas[1]
+
+
+def board_edge_blur_px(gray: np.ndarray, grid: np.ndarray) -> float:
+    """The worse of the two edge families' blur (:func:`edge_blur_by_family`), px."""
+    return float(max(edge_blur_by_family(gray, grid)))
 
 
 def _board_mask(shape: tuple[int, int], grid: np.ndarray) -> np.ndarray:
@@ -194,10 +228,12 @@ def frame_evidence(
         half = np.ascontiguousarray(gray[:, lo:hi])
         grid = _fast_grid(half, spec)
         grids.append(None if grid is None else grid + np.array([lo, 0.0]))
-    blur = float("nan")
+    blur, anisotropy = float("nan"), float("nan")
     if all(g is not None for g in grids):
-        blur = max(board_edge_blur_px(gray, g) for g in grids)
-    return FrameEvidence(int(index), (grids[0], grids[1]), blur)
+        families = np.array([edge_blur_by_family(gray, g) for g in grids])  # (2 halves, 2)
+        blur = float(np.max(families))
+        anisotropy = float(np.max(families.max(axis=1) / np.maximum(families.min(axis=1), 1e-9)))
+    return FrameEvidence(int(index), (grids[0], grids[1]), blur, anisotropy)
 
 
 def _fast_grid(half: np.ndarray, spec: BoardSpec) -> np.ndarray | None:
@@ -242,11 +278,48 @@ def outline_motion_px(a: np.ndarray, b: np.ndarray) -> float:
     return float(min(np.mean(np.linalg.norm(oa - ob[order], axis=1)) for order in _DIHEDRAL))
 
 
+def sharp_envelope(scale_px: np.ndarray, blur_px: np.ndarray) -> np.ndarray:
+    """The clip's sharpest blur at each board scale, px, evaluated at ``scale_px``.
+
+    Parameters
+    ----------
+    scale_px, blur_px : ndarray, shape (n,), px
+        Board scale (:attr:`FrameEvidence.scale_px`) and edge blur of the frames showing
+        the board.
+
+    Notes
+    -----
+    The defocus blur's diameter is proportional to ``|1/z - 1/z_focus|`` and the board's
+    scale to ``1/z``, so ``blur^2 = a + b s + c s^2``: a parabola in the scale, fitted to
+    the lower envelope (refitted :data:`ENVELOPE_ROUNDS` times to the frames on or below
+    the last fit; motion only adds blur). Fewer than 4 frames, or a fit that is not
+    convex: the clip's least blur.
+    """
+    s = np.asarray(scale_px, dtype=np.float64)
+    b2 = np.asarray(blur_px, dtype=np.float64) ** 2
+    floor = float(np.min(b2)) if len(b2) else float("nan")
+    if len(s) < 4 or np.ptp(s) <= 0:
+        return np.sqrt(np.full(len(s), floor))
+    x = (s - s.mean()) / np.ptp(s)
+    design = np.stack([np.ones_like(x), x, x**2], axis=1)
+    keep = np.ones(len(s), dtype=bool)
+    coeffs = np.array([floor, 0.0, 0.0])
+    for _ in range(ENVELOPE_ROUNDS):
+        if keep.sum() < 4:
+            break
+        coeffs = np.linalg.lstsq(design[keep], b2[keep], rcond=None)[0]
+        keep = b2 <= design @ coeffs
+    if coeffs[2] < 0:
+        return np.sqrt(np.full(len(s), floor))
+    return np.sqrt(np.maximum(design @ coeffs, floor))
+
+
 def pick_frames(
     evidence: Sequence[FrameEvidence],
     image_size: tuple[int, int],
     *,
     blur_ratio_max: float = BLUR_RATIO_MAX,
+    anisotropy_max: float = ANISOTROPY_MAX,
     min_motion: float = MIN_MOTION,
 ) -> FramePick:
     """Choose the frames of a clip to keep.
@@ -256,8 +329,8 @@ def pick_frames(
     evidence : sequence of FrameEvidence
         Every frame examined, in clip order.
     image_size : (width, height), px
-    blur_ratio_max : float
-        See :data:`BLUR_RATIO_MAX`.
+    blur_ratio_max, anisotropy_max : float
+        See :data:`BLUR_RATIO_MAX` and :data:`ANISOTROPY_MAX`.
     min_motion : float
         See :data:`MIN_MOTION` (fraction of the image diagonal).
 
@@ -269,12 +342,9 @@ def pick_frames(
         frame kept so far.
     """
     seen = [e for e in evidence if e.board_seen and np.isfinite(e.blur_px)]
-    reference = (
-        float(np.percentile([e.blur_px for e in seen], REFERENCE_PERCENTILE))
-        if seen
-        else float("nan")
-    )
-    threshold = blur_ratio_max * reference
+    envelope = sharp_envelope(np.array([e.scale_px for e in seen]),
+                              np.array([e.blur_px for e in seen]))  # fmt: skip
+    reference = {e.index: float(r) for e, r in zip(seen, envelope, strict=True)}
     min_px = min_motion * float(np.hypot(*image_size))
     picked: list[FrameEvidence] = []
     reasons: dict[int, str] = {}
@@ -283,13 +353,17 @@ def pick_frames(
         if missing:
             where = "both halves" if len(missing) == 2 else f"the {missing[0]} half"
             reasons[e.index] = f"board not fully seen in {where}"
-        elif not e.blur_px <= threshold:
+        elif not (
+            e.blur_px <= blur_ratio_max * reference.get(e.index, np.nan)
+            and e.anisotropy <= anisotropy_max
+        ):
             reasons[e.index] = "blurred"
         elif any(_motion(e, kept) < min_px for kept in picked):
             reasons[e.index] = "pose too close to a kept frame"
         else:
             picked.append(e)
-    return FramePick([e.index for e in picked], reasons, reference)
+    sharpest = float(np.min(envelope)) if len(envelope) else float("nan")
+    return FramePick([e.index for e in picked], reasons, sharpest)
 
 
 def _motion(a: FrameEvidence, b: FrameEvidence) -> float:
