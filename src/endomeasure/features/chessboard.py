@@ -37,6 +37,11 @@ candidates stay selectable by name so that the comparison can be re-run:
     accurate on the simulator's renders (``docs/accuracy.md``, "Refinement on the
     simulator's renders").
 
+The two ``sb-classic`` methods have a last fallback when both finders fail: the
+sector-based finder on the image up-sampled 2x (bicubic), its corners mapped back. It
+only finds; the refinement runs on the original image. It rescues boards of squares a
+few pixels wide in the dim field near the apex band (``docs/rotation.md``).
+
 Corner ids at any in-plane rotation (so that the same id in both halves is the same
 physical corner and detections match the simulator's truth). OpenCV may return the grid
 starting at any corner, mirrored or transposed. :func:`orient_grid` makes it
@@ -113,6 +118,8 @@ SUBPIX_EPSILON_PX = 1e-4
 # never reaches the grid lines that do not pass through the corner.
 SUBPIX_WINDOW_FRACTION = 0.5
 SUBPIX_MIN_HALFWINDOW, SUBPIX_MAX_HALFWINDOW = 2, 15
+# The last-resort finder's up-sampling factor (small squares).
+FALLBACK_UPSAMPLE = 2
 NOT_FOUND = "no chessboard found"
 # Grid lines whose median X-junction score is lower are not corners (a real X scores
 # about 1, a square's edge against the white margin 0.5).
@@ -519,6 +526,20 @@ def _find_raw(gray: np.ndarray, spec: ChessboardSpec, method: str) -> np.ndarray
     return grid
 
 
+def _find_upsampled(gray: np.ndarray, spec: ChessboardSpec) -> np.ndarray | None:
+    """The sector-based finder on the image up-sampled by :data:`FALLBACK_UPSAMPLE`.
+
+    ``cv2.resize`` aligns pixel areas, so up-sampled pixel ``x'`` is at original
+    ``(x' + 0.5) / f - 0.5`` (pixel centres on integers in both).
+    """
+    import cv2
+
+    f = FALLBACK_UPSAMPLE
+    larger = cv2.resize(gray, None, fx=f, fy=f, interpolation=cv2.INTER_CUBIC)
+    raw = _find_raw(larger, spec, "sb")
+    return None if raw is None else (raw + 0.5) / f - 0.5
+
+
 def saddle_scores(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
     """How much each grid point looks like a chessboard X-junction, 0..1.
 
@@ -611,6 +632,8 @@ def detect_chessboard(
             raw = _find_raw(gray, spec, "sb")
             if raw is None:
                 raw = _find_raw(gray, spec, "classic")
+            if raw is None:
+                raw = _find_upsampled(gray, spec)
         else:
             raw = _find_raw(gray, spec, method)
     except _LargerBoard as larger:
