@@ -9,8 +9,9 @@ pixel-centre rule (pixel centres on integers) intact.
 Where a chessboard's colouring leaves its ids open by a half or quarter turn (8x6, 7x7,
 8x8 boards), the two halves are made to agree here (:func:`agree_halves`): both halves
 see the board from two nearby virtual cameras through the prism, so its in-plane angle
-is nearly the same in both, and the right half's ids are turned to the symmetry element
-whose grid direction is nearest the left half's. ChArUco ids are the board's own.
+is nearly the same in both, and the ids of the half the colouring fixes less (the right
+half on a tie) are turned to the symmetry element whose grid direction is nearest the
+other half's. ChArUco ids are the board's own.
 """
 
 from __future__ import annotations
