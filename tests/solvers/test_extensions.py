@@ -58,3 +58,36 @@ def test_nothing_is_freed_when_the_truth_has_none_of_them():
     result = calibrate("raytrace", views, boards, cfg.image_size, cfg.split)
     assert result.extensions == (), result.selection
     assert len(result.selection) == len(truth.EXTENSIONS)
+
+
+@pytest.mark.parametrize("extra", [{}, {"k3": -0.08}, {"e1": 0.4}])
+def test_the_linearised_gain_predicts_the_refined_one(extra):
+    """The screen's premise: from a converged fit, one Gauss-Newton step predicts the
+    criterion's gain of freeing each group to within a factor of 1 / SCREEN_FRACTION of
+    what the refinement reaches (a group is skipped only when its prediction is below
+    that fraction of the threshold)."""
+    from endomeasure.models.start import Fit
+    from endomeasure.solvers import calibrate as module
+    from endomeasure.solvers.bundle import refine
+    from endomeasure.solvers.calibrate import SCREEN_FRACTION, _capped_cost, _collect
+
+    truth = perturbed_raytrace_truth().with_values(extra)
+    views, boards = _views(truth, 5)
+    cfg = truth.config
+    base = calibrate("raytrace", views, boards, cfg.image_size, cfg.split,
+                     CalibrationOptions(fixed=truth.DEFAULT_FIXED))  # fmt: skip
+    obs, _ = _collect(views, boards, cfg.image_size, cfg.split)
+    fit = Fit(base.model, np.array(base.rvecs), np.array(base.tvecs), 1, "", 0, None)
+    use = np.asarray(base.inliers)
+    cap = base.outlier_threshold_px**2
+    cost = _capped_cost(fit, obs, cap)
+    m = 2 * use.size
+    for group in truth.EXTENSIONS:
+        trial_model = base.model.with_config(fixed=base.model.config.fixed - set(group))
+        predicted = module._linearised_gain(trial_model, obs, fit, use, cost, m)
+        trial = refine(trial_model, obs, fit.rvecs, fit.tvecs, use, 200, fit.state)
+        actual = m * np.log(cost / _capped_cost(trial, obs, cap))
+        threshold = len(group) * np.log(m)
+        if actual > threshold:  # a group the criterion keeps is never screened out
+            assert predicted > SCREEN_FRACTION * threshold, (group, predicted, actual)
+        assert actual < predicted / SCREEN_FRACTION + 1.0, (group, predicted, actual)

@@ -636,8 +636,10 @@ def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -
     pay for them. A group that leaves a combination of parameters undetermined by the
     data (a correlation eigenvalue below the verdict's limit) is not kept. A second pass
     retries the groups the first rejected when it kept one (a radial term can make a
-    pupil term worthwhile). Parameters the user gave a value
-    for are not freed. After a change the outlier rule runs again.
+    pupil term worthwhile). A group whose gain predicted by one linearised step
+    (:func:`_linearised_gain`) falls well short of the threshold is not refined at all.
+    Parameters the user gave a value for are not freed. After a change the outlier rule
+    runs again.
     """
     model = fitted.fit.model
     cap = float(fitted.threshold_px) ** 2
@@ -648,10 +650,22 @@ def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -
     chosen = set(options.values) | options.hold
     pending = [g for g in model.EXTENSIONS
                if all(n in model.config.fixed and n not in chosen for n in g)]  # fmt: skip
+
+    def threshold(group):  # the criterion's price of the group's parameters
+        return len(group) * np.log(m)
+
     for _ in range(2):
         rejected = []
         for group in pending:
             trial_model = current.model.with_config(fixed=current.model.config.fixed - set(group))
+            predicted = _linearised_gain(trial_model, obs, current, use, cost, m)
+            if predicted <= SCREEN_FRACTION * threshold(group):
+                findings.append(
+                    f"kept fixed {', '.join(group)}: the linearised information criterion "
+                    f"changes by {-predicted + threshold(group):+.1f} (not refined)"
+                )
+                rejected.append(group)
+                continue
             try:
                 trial = refine(trial_model, obs, current.rvecs, current.tvecs, use,
                                options.max_nfev, current.state)  # fmt: skip
@@ -661,10 +675,10 @@ def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -
             nfev += trial.nfev
             trial_cost = _capped_cost(trial, obs, cap) if trial.status > 0 else np.inf
             gain = m * np.log(cost / trial_cost) if trial_cost < np.inf else -np.inf
-            kept = gain > len(group) * np.log(m) and _determined(trial, obs, use)
+            kept = gain > threshold(group) and _determined(trial, obs, use)
             findings.append(
                 f"{'freed' if kept else 'kept fixed'} {', '.join(group)}: the information "
-                f"criterion changes by {-gain + len(group) * np.log(m):+.1f} "
+                f"criterion changes by {-gain + threshold(group):+.1f} "
                 f"(RMS {np.sqrt(2 * cost / m):.4f} -> {np.sqrt(2 * trial_cost / m):.4f} px, "
                 "capped)"
             )
@@ -680,6 +694,36 @@ def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -
         return _Selection(fitted, (), tuple(findings), nfev)
     again = _fit(current.model, obs, current.rvecs, current.tvecs, options, current.state)
     return _Selection(again, tuple(freed), tuple(findings), nfev + again.nfev)
+
+
+SCREEN_FRACTION = 0.5
+"""A group whose linearised gain (:func:`_linearised_gain`) is below this fraction of
+the criterion's threshold is not refined: a margin of 2 on the linearisation, which
+near a converged fit predicts the refined gain far better than that
+(``tests/solvers/test_extensions.py`` checks the margin holds for every group)."""
+
+
+def _linearised_gain(trial_model, obs: Observations, current, use: np.ndarray, cost: float,
+                     m: int) -> float:  # fmt: skip
+    """The information criterion's gain ``m ln(C_0 / C_1)`` predicted for freeing a group
+    by one Gauss-Newton step from the current fit (the score test): ``C_1 = C_0 - g^T
+    H^-1 g`` with the gradient ``g`` and normal matrix ``H`` of the trial problem (the
+    group freed, every pose) on the inlier corners. Infinite where ``H`` is singular,
+    so that the refinement decides."""
+    problem = BundleProblem(trial_model, obs, use, current.state)
+    x = problem.pack(trial_model, current.rvecs, current.tvecs)
+    r = problem.residuals(x)
+    J = problem.jacobian(x)
+    g = J.T @ r
+    H = (J.T @ J).toarray()
+    d = 1.0 / np.sqrt(np.where(np.diag(H) > 0, np.diag(H), 1.0))
+    try:
+        decrease = float((g * d) @ np.linalg.solve(H * np.outer(d, d), g * d))
+    except np.linalg.LinAlgError:
+        return np.inf
+    if not (np.isfinite(decrease) and decrease < cost):
+        return np.inf
+    return float(m * np.log(cost / (cost - decrease)))
 
 
 def _capped_cost(fit, obs: Observations, cap: float) -> float:
