@@ -16,9 +16,9 @@ Kinds: ``png16`` is the 8-bit image times 257; ``jpeg75`` the grey image as a 3-
 BGR JPEG of quality 75 (OpenCV's default 4:2:0 chroma subsampling); ``bayer-jpeg75`` the
 grey image sampled through an RGGB colour-filter mosaic, demosaiced by OpenCV's bilinear
 ``COLOR_BayerRG2BGR`` and saved as that JPEG (noise correlated over 2-3 px and 8 x 8
-blocks). Prints a Markdown table (write it in docs/video.md by hand with the command):
+blocks); ``bayer-png`` the same demosaiced image stored losslessly. Prints a Markdown table (write it in docs/video.md by hand with the command):
 
-    .venv/bin/python bench/accuracy_formats.py [--kinds png8,png16,jpeg75,bayer-jpeg75]
+    .venv/bin/python bench/accuracy_formats.py [--kinds png8,png16,jpeg75,bayer-png,bayer-jpeg75]
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from _samples import SETS, detect_samples, detection_errors
 from endomeasure.simulate.manifest import MANIFEST_NAME, load_manifest
 
 SAMPLES = ROOT / "sample_sessions"
-KINDS = ("png8", "png16", "jpeg75", "bayer-jpeg75")
+KINDS = ("png8", "png16", "jpeg75", "bayer-png", "bayer-jpeg75")
 JPEG_QUALITY = 75
 RMS_TOLERANCE_PX = 0.01  # issue 16
 
@@ -55,6 +55,9 @@ def convert(grey: np.ndarray, kind: str) -> tuple[bytes, str]:
         colour = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
         ok, buf = cv2.imencode(".jpg", colour, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
         suffix = ".jpg"
+    elif kind == "bayer-png":
+        ok, buf = cv2.imencode(".png", cv2.cvtColor(grey, cv2.COLOR_BayerRG2BGR))
+        suffix = ".png"
     elif kind == "bayer-jpeg75":
         # a grey scene through an RGGB mosaic is the grey image itself, one channel a pixel
         colour = cv2.cvtColor(grey, cv2.COLOR_BayerRG2BGR)

@@ -16,6 +16,7 @@ import numpy as np
 
 from endomeasure.errors import BadInputError
 from endomeasure.io.session import IMAGE_SETS, ImageRecord
+from endomeasure.io.video import VIDEO_SUFFIXES
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 """File types the image reader accepts (matched case-insensitively)."""
@@ -46,6 +47,12 @@ def find_image_files(paths: Iterable[str | os.PathLike]) -> list[Path]:
                 )
             )
         elif path.is_file():
+            if path.suffix.lower() in VIDEO_SUFFIXES:
+                raise BadInputError(
+                    "a video file, not an image",
+                    path=str(path),
+                    hint="add its frames with `endomeasure add-images SESSION VIDEO --board SPEC`",
+                )
             if path.suffix.lower() not in IMAGE_SUFFIXES:
                 raise BadInputError(
                     "not an image file",
