@@ -16,7 +16,8 @@ Kinds: ``png16`` is the 8-bit image times 257; ``jpeg75`` the grey image as a 3-
 BGR JPEG of quality 75 (OpenCV's default 4:2:0 chroma subsampling); ``bayer-jpeg75`` the
 grey image sampled through an RGGB colour-filter mosaic, demosaiced by OpenCV's bilinear
 ``COLOR_BayerRG2BGR`` and saved as that JPEG (noise correlated over 2-3 px and 8 x 8
-blocks); ``bayer-png`` the same demosaiced image stored losslessly. Prints a Markdown table (write it in docs/video.md by hand with the command):
+blocks); ``bayer-png`` the same demosaiced image stored losslessly. Prints a Markdown
+table (written to docs/video.md by hand, with this command):
 
     .venv/bin/python bench/accuracy_formats.py [--kinds png8,png16,jpeg75,bayer-png,bayer-jpeg75]
 """
