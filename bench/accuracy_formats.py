@@ -20,6 +20,7 @@ blocks); ``bayer-png`` the same demosaiced image stored losslessly. Prints a Mar
 table (written to docs/video.md by hand, with this command):
 
     .venv/bin/python bench/accuracy_formats.py [--kinds png8,png16,jpeg75,bayer-png,bayer-jpeg75]
+        [--independent-noise]   (the formal precision as if pixel noise were independent)
 """
 
 from __future__ import annotations
@@ -100,8 +101,24 @@ def stored_covariances(session: Path) -> dict:
         return {(d.image, Half.parse(d.half).label): d.covariance for d in s.detections() if d.ok}
 
 
-def measure(root: Path, session: Path) -> dict:
-    detect_samples(root, session)
+def detect_independent(root: Path, session: Path) -> None:
+    """Detect in this process with the noise autocorrelation held at independent pixels
+    (what the detector's formal precision was before it allowed for correlation)."""
+    import endomeasure.features.precision as precision
+    from endomeasure.pipeline.detect import detect_images
+    from endomeasure.simulate.manifest import board_groups
+
+    precision.noise_autocorrelation = lambda gray, reach=2: np.pad([[1.0]], reach)
+    for set_name in SETS:
+        for spec, files in board_groups(root, set_name):
+            detect_images(session, files, spec, image_set=set_name)
+
+
+def measure(root: Path, session: Path, independent: bool = False) -> dict:
+    if independent:
+        detect_independent(root, session)
+    else:
+        detect_samples(root, session)
     covariances = stored_covariances(session)
     errors, sigmas, chi2 = [], [], []
     for h in detection_errors(root, session):
@@ -128,6 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--kinds", default=",".join(KINDS))
     parser.add_argument("--keep", type=Path, help="keep the converted sets and sessions here")
+    parser.add_argument(
+        "--independent-noise", action="store_true", help="formal precision as if noise were white"
+    )
     args = parser.parse_args(argv)
     kinds = [k for k in args.kinds.split(",") if k]
     results = {}
@@ -137,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
             root = write_kind(kind, work / kind)
             session = work / f"{kind}.h5"
             session.unlink(missing_ok=True)
-            results[kind] = measure(root, session)
+            results[kind] = measure(root, session, args.independent_noise)
             print(kind, json.dumps(results[kind]), flush=True)
     base = results.get("png8")
     print("\n| kind | corners | RMS px | per axis px | RMS - 8-bit PNG px | formal sigma px "
