@@ -20,13 +20,22 @@ in both halves of the image; for ChArUco the true ids themselves. Wrong ids: cor
 whose matched true corner is not the one their id names under the half's best turn, or
 farther than a quarter spacing; all corners of a half whose turn the colouring rules
 out. Inconsistent ids: all corners of a right half whose turn differs from the left
-half's. Writes the ``rotation-simulator`` section of docs/rotation.md unless
-``--no-write``.
+half's.
 
-    .venv/bin/python bench/accuracy_rotation.py [--poses 24] [--seed 0] [--quick] [--no-write]
+How far apart the two halves' views of one board are turned (what
+``features.detect.agree_halves`` relies on): the angle between the true grids' column
+directions in the two halves, over the rendered poses and, from the truth optics alone
+(no rendering), over 100 poses of the first calibration board of each of the random
+probe designs 1..``--designs`` (rolls 0-360, tilts up to 30 degrees, the design's
+distances); a half is refused beyond a quarter of the board's symmetry angle (22.5
+degrees for the square boards of even side). Writes the ``rotation-simulator`` section
+of docs/rotation.md unless ``--no-write``.
+
+    .venv/bin/python bench/accuracy_rotation.py [--poses 24] [--designs 10] [--seed 0]
+        [--quick] [--no-write]
 
 Targets (issue 16): at least 99 % of the halves that show the whole board detected; no
-wrong or inconsistent id. ``--quick``: 4 poses per board.
+wrong or inconsistent id. ``--quick``: 4 poses per board, 2 designs.
 """
 
 from __future__ import annotations
@@ -63,13 +72,78 @@ BOARDS = (
     ("charuco", None, (10.0, 20.0)),  # the preset's own
 )  # fmt: skip
 MAX_OFFSET_MM = 1.5
+DESIGN_POSES = 100
+
+
+def board_rotation(roll: float, tilt_x: float, tilt_y: float) -> np.ndarray:
+    """``Rz(roll) Ry(tilt_y) Rx(tilt_x)`` (radians), as the simulator's sets compose them."""
+    from endomeasure.geometry.rotations import rotation_matrix
+
+    return (
+        rotation_matrix(np.array([0.0, 0.0, roll]))
+        @ rotation_matrix(np.array([0.0, tilt_y, 0.0]))
+        @ rotation_matrix(np.array([tilt_x, 0.0, 0.0]))
+    )
+
+
+def grid_angle(pixels: np.ndarray, cols: int, rows: int) -> float:
+    """Column direction of a (rows * cols, 2) corner grid in id order, degrees (NaN rows
+    ignored)."""
+    steps = np.diff(pixels.reshape(rows, cols, 2), axis=1).reshape(-1, 2)
+    mean = np.nanmean(steps, axis=0)
+    return float(np.degrees(np.arctan2(mean[1], mean[0])))
+
+
+def halves_gap(truth: dict, cols: int, rows: int) -> float:
+    """Angle between the true grids' column directions in the two halves, degrees."""
+    a, b = (
+        grid_angle(np.array([p if p is not None else [np.nan] * 2 for p in truth[h]]), cols, rows)
+        for h in ("left", "right")
+    )
+    return abs((b - a + 180.0) % 360.0 - 180.0)
+
+
+def design_gaps(n_designs: int, seed: int) -> list[tuple[int, str, float, float]]:
+    """Per random design: its first calibration board, the median and largest halves' gap
+    over :data:`DESIGN_POSES` random poses aimed at the design's common field (truth optics
+    only)."""
+    import warnings
+
+    from endomeasure.simulate.design import draw_design
+    from endomeasure.simulate.preset import Preset
+    from endomeasure.simulate.targets import target_from_preset
+    from endomeasure.simulate.truth import true_pixels
+
+    out = []
+    for design in range(1, n_designs + 1):
+        preset = Preset.from_dict(draw_design(design), source=f"design {design}")
+        group = preset.sets["calib"]["boards"][0]
+        base = target_from_preset(group["target"], preset.targets[group["target"]])
+        rng = np.random.default_rng([seed, design, 0x676170])
+        lo, hi = (float(v) for v in group["distance_mm"])
+        ax, ay = np.radians(group.get("centre_deg", (0.0, 0.0)))
+        gaps = []
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a pose that leaves a half
+            for _ in range(DESIGN_POSES):
+                roll = rng.uniform(0.0, 2 * np.pi)
+                tx, ty = np.radians(rng.uniform(-1, 1, 2) * MAX_TILT_DEG)
+                R = board_rotation(roll, tx, ty)
+                z = rng.uniform(lo, hi)
+                centre = np.array([z * np.tan(ax), z * np.tan(ay), z])
+                board = base.with_pose(R, centre - R @ base.centre_board)
+                truth = true_pixels(preset, board.corners_camera)
+                gaps.append(halves_gap(truth, base.cols, base.rows))
+        gaps = np.array(gaps)
+        gaps = gaps[np.isfinite(gaps)]
+        out.append((design, base.spec, float(np.median(gaps)), float(gaps.max())))
+    return out
 
 
 def plan_poses(preset, base, n: int, distances, rng, whole: bool = True):
     """``n`` posed boards, roll stratified over 0-360 deg, each whole in both halves if it
     can be (else the last try; the first with ``whole=False``); with the roll (deg) and
     the per-half visibility."""
-    from endomeasure.geometry.rotations import rotation_matrix
     from endomeasure.simulate.scenes import visibility
 
     lo, hi = distances
@@ -81,11 +155,7 @@ def plan_poses(preset, base, n: int, distances, rng, whole: bool = True):
         for attempt in range(MAX_TRIES):
             shrink = 1.0 - 0.6 * attempt / MAX_TRIES
             tx, ty = np.radians(rng.uniform(-1, 1, 2) * MAX_TILT_DEG * shrink)
-            R = (
-                rotation_matrix(np.array([0.0, 0.0, np.radians(roll)]))
-                @ rotation_matrix(np.array([0.0, ty, 0.0]))
-                @ rotation_matrix(np.array([tx, 0.0, 0.0]))
-            )
+            R = board_rotation(np.radians(roll), tx, ty)
             centre = np.array([*(rng.uniform(-1, 1, 2) * MAX_OFFSET_MM), z_all[k]])
             board = base.with_pose(R, centre - R @ base.centre_board)
             seen = visibility(preset, board)
@@ -141,11 +211,13 @@ def evaluate_board(preset, name, entry, distances, n, rng):
     allowed = colour_preserving_turns(cols, rows) if chess else (0,)
     row = {"name": name, "spec": base.spec, "poses": n, "whole": 0, "found_whole": 0,
            "found_partial": 0, "corners": 0, "wrong": 0, "inconsistent": 0,
-           "errors": [], "turns": Counter(), "refused": Counter(), "rolls": []}  # fmt: skip
+           "errors": [], "turns": Counter(), "refused": Counter(), "rolls": [],
+           "gaps": []}  # fmt: skip
     for board, roll, seen in plan_poses(preset, base, n, distances, rng, entry is not None):
         row["rolls"].append(roll)
         image = render(preset, board, rng=rng).image
         truth = true_pixels(preset, board.corners_camera)
+        row["gaps"].append(halves_gap(truth, cols, rows))
         detection = detect_split_image(image, spec or board.spec, preset.split)
         ks = {}
         for half in detection.halves:
@@ -173,7 +245,7 @@ def evaluate_board(preset, name, entry, distances, n, rng):
     return row
 
 
-def section_body(args, rows, seconds, report) -> str:
+def section_body(args, rows, designs, seconds, report) -> str:
     whole = sum(r["whole"] for r in rows)
     found = sum(r["found_whole"] for r in rows)
     bad = sum(r["wrong"] + r["inconsistent"] for r in rows)
@@ -197,8 +269,9 @@ def section_body(args, rows, seconds, report) -> str:
     rolls = np.concatenate([r["rolls"] for r in rows])
     text = (
         f"Made by `.venv/bin/python bench/accuracy_rotation.py --poses {args.poses} "
-        f"--seed {args.seed}` ({time.strftime('%Y-%m-%d')}, {seconds:.0f} s): the default "
-        "preset's truth optics and sensor noise, each board posed "
+        f"--designs {args.designs} --seed {args.seed}` ({time.strftime('%Y-%m-%d')}, "
+        f"{seconds:.0f} s): the default preset's truth optics and sensor noise, each board "
+        "posed "
         f"{args.poses} times with the roll stratified over 0-360 degrees (this run "
         f"{rolls.min():.0f}-{rolls.max():.0f}), tilted up to {MAX_TILT_DEG:g} degrees about "
         "x and y, and whole in both halves where a pose allows it (the preset's ChArUco board "
@@ -215,6 +288,24 @@ def section_body(args, rows, seconds, report) -> str:
         f"{bad} corners with a wrong or inconsistent id among {corners} (target 0: "
         f"{wrong_check})."
     )
+    rendered = np.concatenate([r["gaps"] for r in rows])
+    rendered = rendered[np.isfinite(rendered)]
+    gap_text = (
+        "The two halves' views of one board are turned against each other by "
+        f"{np.median(rendered):.1f} degrees (median; largest {rendered.max():.1f}) over the "
+        "rendered poses"
+    )
+    if designs:
+        worst = max(designs, key=lambda d: d[3])
+        gap_text += (
+            f", and by at most {worst[3]:.1f} degrees (design {worst[0]}, `{worst[1]}`) over "
+            f"{DESIGN_POSES} poses of each of the random probe designs "
+            f"1-{len(designs)} (medians "
+            f"{min(d[2] for d in designs):.1f}-{max(d[2] for d in designs):.1f}); "
+            "a half is refused beyond 22.5 degrees for square boards of even side, 45 for "
+            "boards with a half turn open, 90 for boards the colouring fixes"
+        )
+    gap_text += "."
     if refused:
         verdict += (
             " Whole-board halves not detected: "
@@ -233,6 +324,8 @@ def section_body(args, rows, seconds, report) -> str:
             *lines,
             "",
             textwrap.fill(verdict, 88, break_on_hyphens=False),
+            "",
+            textwrap.fill(gap_text, 88, break_on_hyphens=False),
         ]
     )
 
@@ -240,9 +333,12 @@ def section_body(args, rows, seconds, report) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = script_parser(__doc__, seed=SEED)
     parser.add_argument("--poses", type=int, default=24, help="poses per board (24)")
+    parser.add_argument(
+        "--designs", type=int, default=10, help="random designs for the halves' angle (10)"
+    )
     args = parser.parse_args(argv)
     if args.quick:
-        args.poses = 4
+        args.poses, args.designs = 4, 2
     report = Report("bench/accuracy_rotation.py", args, DOC)
     from endomeasure.simulate.preset import load_preset
 
@@ -252,8 +348,9 @@ def main(argv: list[str] | None = None) -> int:
     for index, (name, entry, distances) in enumerate(BOARDS):
         rng = np.random.default_rng([args.seed, index, 0x726F74])
         rows.append(evaluate_board(preset, name, entry, distances, args.poses, rng))
+    designs = design_gaps(args.designs, args.seed)
     seconds = time.perf_counter() - start
-    return report.finish({SECTION: section_body(args, rows, seconds, report)})
+    return report.finish({SECTION: section_body(args, rows, designs, seconds, report)})
 
 
 if __name__ == "__main__":
