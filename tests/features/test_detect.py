@@ -128,9 +128,7 @@ def test_halves_astride_the_upright_flip_get_the_same_ids(cols, rows, left_deg, 
     }[raw]
     truth = {h: g.reshape(-1, 2) for h, g in grids.items()}
     left, right = oriented(grids["left"], cols, rows), oriented(given, cols, rows)
-    alone = [
-        physical_k(r.pixels, truth[h], cols, rows) for r, h in ((left, "left"), (right, "right"))
-    ]
+    alone = [physical_k(r.pixels, truth[h], cols, rows) for r, h in pairs(left, right)]
     assert alone[0] != alone[1]  # the case the agreement exists for
     left, right = agree_halves(left, right, cols, rows)
     assert left.ok and right.ok
