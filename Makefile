@@ -42,7 +42,9 @@ ACCURACY_RUNS := \
 	"bench/corner_precision.py $(ACCURACY_WORK) --twins 8" \
 	"bench/accuracy_scene.py" \
 	"bench/match_precision.py" \
-	"bench/accuracy_designs.py --work $(ACCURACY_WORK)/designs --jobs 2"
+	"bench/accuracy_designs.py --work $(ACCURACY_WORK)/designs --jobs 2" \
+	"bench/accuracy_split.py --work $(ACCURACY_WORK)/split" \
+	"bench/accuracy_rotation.py --poses 24 --designs 10 --seed 0"
 
 bench: install
 	@failed=""; \
