@@ -48,6 +48,7 @@ __all__ = [
     "refine",
     "all_residuals",
     "fit_with_outliers",
+    "scaled_normal_matrix",
     "OUTLIER_FLOOR_PX",
 ]
 
@@ -166,6 +167,16 @@ RESTART_MIN_GAIN = 1e-6
 _PRECONDITION_RIDGE = 1e-10  # relative ridge keeping the start's normal matrix factorable
 
 
+def scaled_normal_matrix(J) -> tuple[np.ndarray, np.ndarray]:
+    """The normal matrix ``J^T J`` (dense) of a sparse Jacobian, scaled to unit diagonal:
+    ``(D J^T J D, d)`` with ``D = diag(d)``, ``d = diag(J^T J)^-1/2`` (1 where a column
+    is zero), so that its solves are not ruled by the unknowns' units."""
+    N = (J.T @ J).toarray()
+    diag = np.diag(N).copy()
+    d = 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))
+    return N * d[:, None] * d[None, :], d
+
+
 def _least_squares(problem: BundleProblem, x0: np.ndarray, max_nfev: int):
     """``scipy.optimize.least_squares`` (trust-region reflective, LSMR steps), whitened.
 
@@ -184,11 +195,7 @@ def _least_squares(problem: BundleProblem, x0: np.ndarray, max_nfev: int):
     from scipy.optimize import least_squares
     from scipy.sparse.linalg import LinearOperator
 
-    J0 = problem.jacobian(x0)
-    N0 = (J0.T @ J0).toarray()
-    diag = np.diag(N0).copy()
-    d = 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))
-    Nn = N0 * d[:, None] * d[None, :]
+    Nn, d = scaled_normal_matrix(problem.jacobian(x0))
     Nn[np.diag_indices_from(Nn)] += _PRECONDITION_RIDGE
     L = cholesky(Nn, lower=True)
     P = d[:, None] * solve_triangular(L, np.eye(L.shape[0]), lower=True, trans="T")
@@ -368,7 +375,8 @@ def _repose(fit: Fit, obs: Observations, r: np.ndarray, threshold: float, max_nf
     return fit, r, nfev
 
 
-POSE_TRIM_STEPS = 5  # concentration steps of the trimmed pose fit (they converge in 2-3)
+POSE_TRIM_STEPS = 5  # a cap on the concentration steps; they stop when the subset holds
+MIN_POSE_CORNERS = 4  # a plane's pose needs four points
 
 
 def _trimmed_pose(held, obs: Observations, rvecs, tvecs, rows: np.ndarray, max_nfev: int, state):
@@ -382,7 +390,7 @@ def _trimmed_pose(held, obs: Observations, rvecs, tvecs, rows: np.ndarray, max_n
     subset = None
     for _ in range(POSE_TRIM_STEPS):
         length = np.where(np.isfinite(r).all(axis=-1), np.linalg.norm(r, axis=-1), np.inf)
-        keep = np.argsort(length, kind="stable")[: max(4, (rows.sum() + 1) // 2)]
+        keep = np.argsort(length, kind="stable")[: max(MIN_POSE_CORNERS, (rows.sum() + 1) // 2)]
         if subset is not None and np.array_equal(np.sort(keep), subset):
             break
         subset = np.sort(keep)

@@ -35,6 +35,7 @@ from endomeasure.solvers.bundle import (
     all_residuals,
     fit_with_outliers,
     refine,
+    scaled_normal_matrix,
 )
 from endomeasure.solvers.covariance import marginal_covariance
 from endomeasure.solvers.verdict import MIN_CORRELATION_EIGENVALUE, Verdict, judge
@@ -715,10 +716,9 @@ def _linearised_gain(trial_model, obs: Observations, current, use: np.ndarray, c
     r = problem.residuals(x)
     J = problem.jacobian(x)
     g = J.T @ r
-    H = (J.T @ J).toarray()
-    d = 1.0 / np.sqrt(np.where(np.diag(H) > 0, np.diag(H), 1.0))
+    H, d = scaled_normal_matrix(J)
     try:
-        decrease = float((g * d) @ np.linalg.solve(H * np.outer(d, d), g * d))
+        decrease = float((g * d) @ np.linalg.solve(H, g * d))
     except np.linalg.LinAlgError:
         return np.inf
     if not (np.isfinite(decrease) and decrease < cost):
