@@ -100,3 +100,40 @@ def detection_errors(root: str | Path, session: str | Path, sets=SETS) -> list[H
                     )
                 )  # fmt: skip
     return out
+
+
+def truth_board_sets(images: list[tuple[str, dict, np.ndarray, np.ndarray]]) -> list:
+    """The board sets of :func:`endomeasure.measure.board_runs.board_sets` from given
+    pixels: ``(image, truth, left, right)`` per image, every true corner id in both halves,
+    the boards in the order they first appear."""
+    from endomeasure.conventions import Half
+    from endomeasure.io.session import Detection
+    from endomeasure.measure.board_runs import board_sets
+
+    boards, detections = {}, []
+    for image, truth, left, right in images:
+        boards.setdefault(truth["board_spec"], truth["target"])
+        ids = np.asarray(truth["corners"]["ids"], dtype=np.int64)
+        for half, pixels in ((Half.LEFT, left), (Half.RIGHT, right)):
+            detections.append(Detection(image, truth["board_spec"], half, ids, pixels))
+    return board_sets(boards, detections, [image for image, *_ in images])
+
+
+def truth_board_test(session: Path, data: Path, zone_mm: float, models=None) -> dict:
+    """The board test on the true corner pixels of the test set: the models' own error,
+    no image noise (``models``: the stored model names to test, default all)."""
+    from endomeasure.io.records import load_calibrated_model
+    from endomeasure.io.session import open_session
+    from endomeasure.measure.board_runs import run_board_test
+
+    with open_session(session) as s:
+        names = s.model_names() if models is None else models
+        models = {n: load_calibrated_model(s, n, session).model for n in names}
+        test = s.image_names("test")
+    images = []
+    for image in test:
+        t = load_truth(data, image)
+        px = t["corners"]["pixels"]
+        images.append((image, t, np.asarray(px["left"], float), np.asarray(px["right"], float)))
+    sets = truth_board_sets(images)
+    return {n: run_board_test(n, m, sets, zone_mm) for n, m in models.items()}

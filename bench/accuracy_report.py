@@ -31,7 +31,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 from _common import ACCURACY, Report, Target, machine, script_parser  # noqa: E402
-from _samples import detect_samples, detection_errors, endomeasure  # noqa: E402
+from _samples import (  # noqa: E402
+    detect_samples,
+    detection_errors,
+    endomeasure,
+    truth_board_sets,
+    truth_board_test,
+)
 from endomeasure.simulate.manifest import load_manifest, load_truth  # noqa: E402
 
 EM = [sys.executable, "-m", "endomeasure"]
@@ -204,41 +210,6 @@ def detection_noise(session: Path, data: Path, zone_mm: float | None = None) -> 
     result["zones"] = dict(sorted((k, v) for k, v in out.items() if not isinstance(k, tuple)))
     result["board_zones"] = dict(sorted((k, v) for k, v in out.items() if isinstance(k, tuple)))
     return result
-
-
-def truth_board_sets(images: list[tuple[str, dict, np.ndarray, np.ndarray]]) -> list:
-    """The board sets of :func:`endomeasure.measure.board_runs.board_sets` from given
-    pixels: ``(image, truth, left, right)`` per image, every true corner id in both halves,
-    the boards in the order they first appear."""
-    from endomeasure.conventions import Half
-    from endomeasure.io.session import Detection
-    from endomeasure.measure.board_runs import board_sets
-
-    boards, detections = {}, []
-    for image, truth, left, right in images:
-        boards.setdefault(truth["board_spec"], truth["target"])
-        ids = np.asarray(truth["corners"]["ids"], dtype=np.int64)
-        for half, pixels in ((Half.LEFT, left), (Half.RIGHT, right)):
-            detections.append(Detection(image, truth["board_spec"], half, ids, pixels))
-    return board_sets(boards, detections, [image for image, *_ in images])
-
-
-def truth_board_test(session: Path, data: Path, zone_mm: float) -> dict:
-    """The board test on the true corner pixels: the models' own error, no image noise."""
-    from endomeasure.io.records import load_calibrated_model
-    from endomeasure.io.session import open_session
-    from endomeasure.measure.board_runs import run_board_test
-
-    with open_session(session) as s:
-        models = {n: load_calibrated_model(s, n, session).model for n in s.model_names()}
-        test = s.image_names("test")
-    images = []
-    for image in test:
-        t = truth_of(data, image)
-        px = t["corners"]["pixels"]
-        images.append((image, t, np.asarray(px["left"], float), np.asarray(px["right"], float)))
-    sets = truth_board_sets(images)
-    return {n: run_board_test(n, m, sets, zone_mm) for n, m in models.items()}
 
 
 def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int) -> dict:
