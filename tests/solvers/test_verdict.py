@@ -143,9 +143,32 @@ def test_outliers_over_three_percent_warn_and_say_where(truth_and_views, fitted)
     v = result.verdict
     assert v.outlier_fraction > OUTLIER_WARNING_FRACTION
     assert v.level == "warning"
-    assert any("dropped as outliers" in r and "field edge" in r for r in v.reasons)
+    (reason,) = [r for r in v.reasons if "dropped as outliers" in r]
+    assert "field edge" in reason and "of the split" in reason
+    # the 3 px moves are 42 times the per-corner length of the noise, 0.07 px
+    median = float(reason.split("median ")[1].split(" px")[0])
+    assert 2.5 < median < 4.5
+    assert "in image" not in reason  # spread over every image
     # every corner moved by 3 px (60 sigma) is among those dropped
     pairs = [(a.pixels[h], b.pixels[h]) for a, b in zip(views, data.views, strict=True)
              for h in Half]  # fmt: skip
     moved = np.concatenate([np.linalg.norm(np.asarray(p) - q, axis=1) for p, q in pairs])
     assert result.outlier_count >= int((moved > 1.0).sum())
+
+
+def test_outliers_in_one_image_name_it(truth_and_views, fitted):
+    truth, data = truth_and_views
+    cfg = truth.config
+    views = _with_covariance(data.views, NOISE_PX)
+    rng = np.random.default_rng(8)
+    bad = views[3]
+    shifted = []
+    for h in Half:  # 40 % of the view's corners 3 px off, in random directions
+        q = np.array(bad.pixels[h])
+        moved = rng.uniform(size=len(q)) < 0.4
+        q[moved] += rng.choice([-1.0, 1.0], size=(moved.sum(), 2)) * 3.0
+        shifted.append(q)
+    views[3] = dataclasses.replace(bad, pixels=tuple(shifted))
+    result = calibrate("raytrace", views, data.boards, cfg.image_size, cfg.split, start=fitted)
+    (reason,) = [r for r in result.verdict.reasons if "dropped as outliers" in r]
+    assert f"in image {bad.name!r}" in reason

@@ -22,7 +22,8 @@ A fit is judged against what the detections allow, not against a fixed pixel fig
   (:func:`scatter_floor`). The verdict's floor is the larger of the two; both are
   reported.
 - **Outliers.** More than :data:`OUTLIER_WARNING_FRACTION` of the corners dropped is a
-  sign of trouble (mrcal's rule of thumb); where they are is reported.
+  sign of trouble (mrcal's rule of thumb); where they are (field edge, next to the
+  split, one image, per half) and how far they miss is reported.
 - **Residual structure.** The inlier residuals are averaged over a grid of cells per half;
   a cell whose mean residual is both significant (:data:`STRUCTURE_Z` standard errors)
   and large against the noise (:data:`STRUCTURE_NOISE_FRACTION` of the per-axis floor)
@@ -67,7 +68,11 @@ MIN_KNOWN_FRACTION = 0.5
 """At least this fraction of the inlier corners must carry a formal covariance for the
 floor to be computed (the others get the median of the known ones)."""
 EDGE_RADIUS_FRACTION = 0.7
-"""Outliers beyond this fraction of the half's centre-to-corner radius are 'at the edge'."""
+"""Outliers beyond this fraction of a half's centre-to-corner radius are "at the field edge"."""
+BAND_WIDTH_FRACTION = 0.1
+"""Outliers within this fraction of a half's width of the split are "next to the band"."""
+ONE_IMAGE_FRACTION = 0.5
+"""An image holding more than this fraction of the outliers is named."""
 
 
 MIN_NEIGHBOUR_PAIRS = 30
@@ -182,23 +187,47 @@ def _half_bounds(half: int, split: int, image_size) -> tuple[float, float, float
     return lo, hi, -0.5, height - 0.5
 
 
-def _where(pixels: np.ndarray, halves: np.ndarray, split: int, image_size) -> str:
-    """Where corners lie: how many at the field edge, and per half."""
-    edge = 0
+def _where(result, dropped: np.ndarray, floor: float) -> str:
+    """Where the dropped corners lie and how far they miss: at the field edge, next to
+    the split (the apex band), in one image, per half; their residuals against the floor.
+
+    A cluster in one place is structure the model or the detector misses there, not
+    random outliers; saying where lets the user tell a bad image from a lens edge.
+    """
+    config = result.model.config
+    pixels, halves = result.obs_pixels[dropped], result.obs_half[dropped]
+    edge = band = 0
     for h in (0, 1):
         sel = halves == h
         if not sel.any():
             continue
-        u0, u1, v0, v1 = _half_bounds(h, split, image_size)
+        u0, u1, v0, v1 = _half_bounds(h, config.split, config.image_size)
         centre = np.array([(u0 + u1) / 2, (v0 + v1) / 2])
         radius = np.hypot((u1 - u0) / 2, (v1 - v0) / 2)
         r = np.linalg.norm(pixels[sel] - centre, axis=1) / radius
         edge += int((r > EDGE_RADIUS_FRACTION).sum())
-    left, right = int((halves == 0).sum()), int((halves == 1).sum())
-    return (
+        inner = u1 if h == 0 else u0  # the half's edge at the split
+        band += int((np.abs(pixels[sel, 0] - inner) < BAND_WIDTH_FRACTION * (u1 - u0)).sum())
+    n = int(dropped.sum())
+    parts = [
         f"{edge} of them at the field edge (beyond {EDGE_RADIUS_FRACTION:.0%} of each half's "
-        f"radius); left {left}, right {right}"
-    )
+        f"radius)",
+        f"{band} within {BAND_WIDTH_FRACTION:.0%} of a half's width of the split",
+        f"left {int((halves == 0).sum())}, right {int((halves == 1).sum())}",
+    ]
+    images = np.bincount(result.obs_image[dropped], minlength=len(result.image_names))
+    worst = int(np.argmax(images))
+    if images[worst] > ONE_IMAGE_FRACTION * n:
+        parts.append(f"{images[worst]} in image {result.image_names[worst]!r}")
+    size = np.linalg.norm(result.residuals[dropped], axis=1)
+    size = size[np.isfinite(size)]  # corners that no longer project have no residual
+    if size.size:
+        lo, mid, hi = np.percentile(size, [10, 50, 90])
+        text = f"residuals {lo:.2f}-{hi:.2f} px (10th-90th percentile), median {mid:.2f} px"
+        if np.isfinite(floor) and floor > 0:
+            text += f" ({mid / floor:.0f} times the noise floor)"
+        parts.append(text)
+    return "; ".join(parts)
 
 
 _ROWS = ("top", "upper middle", "lower middle", "bottom")
@@ -299,8 +328,7 @@ def judge(result, n_unknowns: int) -> Verdict:
             f"ok up to {OK_RMS_RATIO:g}): part of the residual is model error"
         )
     if outlier_fraction > OUTLIER_WARNING_FRACTION:
-        where = _where(result.obs_pixels[~inl], result.obs_half[~inl], config.split,
-                       config.image_size)  # fmt: skip
+        where = _where(result, ~inl, floor)
         warnings.append(
             f"{outlier_fraction:.1%} of the corners were dropped as outliers (over "
             f"{OUTLIER_WARNING_FRACTION:.0%}): {where}"
