@@ -432,7 +432,13 @@ def detect(
         Path, typer.Argument(help="Session file (.h5); created if missing.", show_default=False)
     ],
     images: Annotated[
-        list[Path], typer.Argument(help="Image files or directories of images.", show_default=False)
+        list[Path],
+        typer.Argument(
+            help="Image files, directories of images, or video files (.avi, .mp4, .mkv, "
+            ".mov, .mpg, ...: whatever OpenCV decodes; sharp, distinct frames showing the "
+            "whole board in both halves are picked).",
+            show_default=False,
+        ),
     ],
     board: Annotated[
         str,
@@ -455,19 +461,30 @@ def detect(
         ),
     ] = "auto",
     workers: Annotated[int, typer.Option("--workers", help="Processes to use.")] = 1,
+    frame_step: Annotated[
+        int | None,
+        typer.Option(
+            "--frame-step",
+            metavar="N",
+            help="Take every N-th video frame instead of picking sharp, distinct frames "
+            "that show the whole board in both halves.",
+            show_default=False,
+        ),
+    ] = None,
     json_output: JsonOption = False,
 ) -> None:
-    """Find target corners in both halves of every image and store them in the session.
+    """Find target corners in both halves of every image (and of the frames taken from
+    videos) and store them in the session.
 
-    Exit code 1 if any image failed (unreadable, wrong size, no board), 2 if nothing usable.
+    Exit code 1 if any image failed (unreadable, wrong size, no board), 2 if nothing usable
+    or a video cannot be used (unreadable, truncated, another frame size, no board).
     """
     from endomeasure.pipeline.detect import detect_images
 
     split_column = parse_split(split)
     if json_output:
-        report = detect_images(
-            session, images, board, image_set=image_set, split=split_column, workers=workers
-        )
+        report = detect_images(session, images, board, image_set=image_set, split=split_column,
+                               workers=workers, frame_step=frame_step)  # fmt: skip
         _print_json(report.to_dict())
         raise typer.Exit(report.exit_code)
 
@@ -491,9 +508,17 @@ def detect(
             image_set=image_set,
             split=split_column,
             workers=workers,
+            frame_step=frame_step,
             on_progress=on_progress,
         )
 
+    for video in report.videos:
+        left_out = ", ".join(f"{reason} {n}" for reason, n in video.left_out.items() if n)
+        console.print(
+            f"{video.path}: {video.frames} frames, kept {len(video.picked)}"
+            + (f" (left out: {left_out})" if left_out else ""),
+            markup=False,
+        )
     table = Table(title=f"detect {report.board} ({report.image_set})", title_justify="left")
     for column in ("image", "status", "left", "right", "edge width px (L/R)"):
         table.add_column(column)

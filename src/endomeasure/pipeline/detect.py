@@ -1,7 +1,9 @@
 """``endomeasure detect``: board corners in both halves of many images, into the session.
 
-Steps: expand the given paths; read and decode every file (per-file errors are results,
-not exceptions); fix the split (the session's stored split, a given column, or the band
+Steps: expand the given paths; take the frames of every video first (picked, or every
+N-th, by :func:`endomeasure.pipeline.images.video_records`, the code ``add-images``
+uses); read and decode every image file (per-file errors are results, not exceptions);
+fix the split (the session's stored split, a given column, or the band
 fitted to all images at once by :func:`endomeasure.features.split.find_split_in_set`);
 detect in both halves of every image (:func:`endomeasure.features.detect.detect_split_image`);
 then store images, board, split and detections in one atomic session edit. Reading and
@@ -11,6 +13,11 @@ OpenCV's own threading is switched off in every process so that N workers use N 
 Image status: ``ok`` (board in both halves), ``one-half`` (in one half only), ``failed``
 (no board in either half, or the image could not be used: unreadable, not an image,
 another size than the session's, a different image under a stored name).
+
+A video is all or nothing: an unreadable or truncated clip, frames of another size than
+the session's, no frame worth keeping, or no board in any frame taken is a
+:class:`BadInputError` and nothing is stored (a damaged clip would otherwise give a
+silently smaller set).
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import numpy as np
 
 from endomeasure.conventions import Half
 from endomeasure.errors import BadInputError, EndomeasureError
+from endomeasure.io.video import is_video_file
 
 __all__ = ["DetectReport", "ImageResult", "detect_images"]
 
@@ -57,6 +65,8 @@ class ImageResult:
         Why the image could not be used at all ('' otherwise).
     halves : dict of str to HalfSummary
         ``left`` / ``right``; empty when the image could not be used.
+    frame : int or None
+        Frame number in the video ``path`` for a frame of a video.
     """
 
     path: str
@@ -64,6 +74,7 @@ class ImageResult:
     status: str
     error: str = ""
     halves: dict = dataclasses.field(default_factory=dict)
+    frame: int | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,6 +91,8 @@ class DetectReport:
     images : list of ImageResult
     stored : bool
         Whether the session was written (not when nothing usable was found).
+    videos : list of VideoSummary
+        What was taken from each video given (:mod:`endomeasure.pipeline.images`).
     """
 
     session: str
@@ -90,6 +103,7 @@ class DetectReport:
     split_source: str
     images: list[ImageResult]
     stored: bool
+    videos: list = dataclasses.field(default_factory=list)
 
     @property
     def counts(self) -> dict[str, int]:
@@ -132,10 +146,12 @@ class DetectReport:
                     "name": image.name,
                     "status": image.status,
                     "error": image.error,
+                    "frame": image.frame,
                     "halves": {k: dataclasses.asdict(v) for k, v in image.halves.items()},
                 }
                 for image in self.images
             ],
+            "videos": [dataclasses.asdict(v) for v in self.videos],
         }
 
 
@@ -152,15 +168,15 @@ def _init_worker() -> None:
 
 
 def _read_task(
-    path: str,
+    item,
     image_set: str,
     want_split: bool,
     board: str | None = None,
     split: int | None = None,
     method: str | None = None,
 ):
-    """Read and decode one file; gather its split evidence, or detect when the split is
-    known.
+    """Read and decode one file (``item`` a path), or take a video's frame (``item`` its
+    ImageRecord); gather its split evidence, or detect when the split is known.
 
     Never raises for a bad file: returns ``(path, record, split_evidence, error,
     detection)`` with ``error`` set instead.
@@ -169,10 +185,14 @@ def _read_task(
     from endomeasure.features.split import split_evidence
     from endomeasure.io.images import read_image_file
 
-    try:
-        record = read_image_file(path, image_set)
-    except EndomeasureError as exc:
-        return path, None, None, exc.what, None
+    if isinstance(item, str):
+        path = item
+        try:
+            record = read_image_file(path, image_set)
+        except EndomeasureError as exc:
+            return path, None, None, exc.what, None
+    else:
+        record, path = item, item.original_path
     estimate = detection = None
     if want_split:
         try:
@@ -235,11 +255,16 @@ class _Runner:
 
 
 def _expand(paths: Iterable[str | os.PathLike]) -> tuple[list[str], list[ImageResult]]:
-    """Image files from files and directories; a bad path is a failed result, not an error."""
+    """Image and video files from files and directories (a directory gives its image
+    files); a bad path is a failed result, not an error (a missing video is the video
+    reader's refusal)."""
     from endomeasure.io.images import find_image_files
 
     files, failures = [], []
     for raw in paths:
+        if is_video_file(raw) and not os.path.isdir(raw):
+            files.append(os.fspath(raw))
+            continue
         try:
             files.extend(str(p) for p in find_image_files([raw]))
         except BadInputError as exc:
@@ -261,6 +286,7 @@ def _check_reads(reads, stored_size, stored_images, results):
         if record is None:
             results.append(ImageResult(path=path, name="", status=STATUS_FAILED, error=error))
             continue
+        frame = record.frame
         name = record.name
         image_size = (int(record.pixels.shape[1]), int(record.pixels.shape[0]))
         problem = ""
@@ -274,7 +300,8 @@ def _check_reads(reads, stored_size, stored_images, results):
                 f"{size[0]}x{size[1]} px"
             )
         if problem:
-            results.append(ImageResult(path=path, name=name, status=STATUS_FAILED, error=problem))
+            results.append(ImageResult(path=path, name=name, status=STATUS_FAILED,
+                                       error=problem, frame=frame))  # fmt: skip
             continue
         seen[name] = path
         size = image_size if size is None else size
@@ -350,18 +377,18 @@ class _Detected(NamedTuple):
     size: tuple[int, int] | None
 
 
-def _read_and_detect(files, image_set, board_name, given_split, before: _Snapshot, method,
+def _read_and_detect(items, image_set, board_name, given_split, before: _Snapshot, method,
                      workers: int, tick, results) -> _Detected:  # fmt: skip
-    """Read every file, fix the split, detect in both halves; failed files go to
-    ``results``."""
+    """Read every file (a path) or take every frame (an ImageRecord), fix the split,
+    detect in both halves; failed files go to ``results``."""
     want_split = given_split is None and before.split is None
     known_split = given_split if given_split is not None else before.split
     with _Runner(workers) as runner:
         # With the split known, each worker reads and detects in one go.
         reads = runner.run(
             _read_task,
-            [(path, image_set, want_split, board_name, known_split, method) for path in files],
-            tick("reading" if want_split else "detecting", len(files)),
+            [(item, image_set, want_split, board_name, known_split, method) for item in items],
+            tick("reading" if want_split else "detecting", len(items)),
         )
         records, detections = _check_reads(reads, before.image_size, before.images, results)
         split_used, split_source = _choose_split(
@@ -393,7 +420,7 @@ def _image_result(record, detection) -> ImageResult:
     status = {2: STATUS_OK, 1: STATUS_ONE_HALF, 0: STATUS_FAILED}[detection.n_ok]
     error = "" if detection.n_ok else "no board found in either half"
     return ImageResult(path=record.original_path, name=record.name, status=status,
-                       error=error, halves=halves)  # fmt: skip
+                       error=error, halves=halves, frame=record.frame)  # fmt: skip
 
 
 def _stored_detections(found: _Detected, board_name: str, method: str | None) -> list:
@@ -457,6 +484,45 @@ def _store(session_path: Path, spec, board_name: str, found: _Detected, method) 
         writer.write_detections(stored)
 
 
+def _video_frames(videos, image_set, board_name, frame_step, split, image_size, on_progress):
+    """The frames of every video (:func:`endomeasure.pipeline.images.video_records`: the
+    pick ``add-images`` makes, or every ``frame_step``-th frame), all of one size: the
+    session's, else the first video's. Returns the records and one summary per video."""
+    from endomeasure.pipeline.images import video_records
+
+    progress = on_progress or (lambda stage, done, total: None)
+    records, summaries = [], []
+    for video in videos:
+        stage = f"reading {os.path.basename(video)}"
+        frames, summary = video_records(
+            video, image_set, board=board_name, frame_step=frame_step, split=split,
+            image_size=image_size,
+            on_progress=lambda done, total, stage=stage: progress(stage, done, total),
+        )  # fmt: skip
+        image_size = image_size or (int(frames[0].pixels.shape[1]), int(frames[0].pixels.shape[0]))
+        records.extend(frames)
+        summaries.append(summary)
+    return records, summaries
+
+
+def _check_videos_found_board(summaries, found: _Detected, spec) -> None:
+    """Refuse a video none of whose frames taken shows the board in either half (frames
+    refused before detection, e.g. under a name the session holds for another image, are
+    failures of their own in the report)."""
+    for summary in summaries:
+        detected = [r.name for r in found.records
+                    if r.frame is not None and r.original_path == summary.path]  # fmt: skip
+        if not detected or any(found.detections[name].n_ok for name in detected):
+            continue
+        how = "picked" if summary.split is not None else "taken"
+        raise BadInputError(
+            f"no board {spec.canonical()} found in either half of the {len(detected)} frames "
+            f"{how} from the video",
+            path=summary.path,
+            hint="check the --board spec and the --split, or give another video",
+        )
+
+
 def detect_images(
     session_path: str | os.PathLike,
     paths: Iterable[str | os.PathLike],
@@ -466,6 +532,7 @@ def detect_images(
     split: int | None = None,
     workers: int = 1,
     method: str | None = None,
+    frame_step: int | None = None,
     on_progress: Callable[[str, int, int], None] | None = None,
 ) -> DetectReport:
     """Detect a board in both halves of image files and store everything in a session.
@@ -475,7 +542,8 @@ def detect_images(
     session_path : path-like
         Created when missing.
     paths : iterable of path-like
-        Image files and/or directories of images.
+        Image files, directories of images and video files
+        (:data:`endomeasure.io.video.VIDEO_SUFFIXES`).
     board : str
         Board spec (``chessboard:COLSxROWS:SQUARE_MM`` or ``charuco:...``).
     image_set : str
@@ -487,8 +555,12 @@ def detect_images(
         Processes for reading and detection.
     method : str, optional
         Chessboard method; the detector's default when None.
+    frame_step : int, optional
+        Take every ``frame_step``-th frame of a video (0, N, 2N, ...) instead of the
+        frames picked by :func:`endomeasure.features.frames.pick_frames`.
     on_progress : callable(stage, done, total), optional
-        ``stage`` is ``"reading"`` or ``"detecting"``.
+        ``stage`` is ``"reading"``, ``"detecting"`` or ``"reading <video file name>"``
+        (once per pass over the clip).
 
     Returns
     -------
@@ -498,8 +570,9 @@ def detect_images(
     Raises
     ------
     BadInputError
-        Malformed board spec, image set or worker count; a split that contradicts the
-        one stored with existing detections; no split could be found.
+        Malformed board spec, image set, worker count or frame step; a split that
+        contradicts the one stored with existing detections; no split could be found;
+        a video that cannot be used (see the module docstring).
     SessionError
         The session cannot be read.
     """
@@ -514,6 +587,8 @@ def detect_images(
         )
     if int(workers) < 1:
         raise BadInputError(f"--workers must be at least 1, not {workers}")
+    if frame_step is not None and int(frame_step) < 1:
+        raise BadInputError(f"--frame-step must be at least 1, not {frame_step}")
     session_path = Path(session_path)
     before = _snapshot(session_path)
     if split is not None and before.split is not None and split != before.split:
@@ -526,8 +601,16 @@ def detect_images(
             )
 
     files, results = _expand(paths)
-    found = _read_and_detect(files, image_set, board_name, split, before, method, int(workers),
+    videos = [f for f in files if is_video_file(f)]
+    frames, summaries = _video_frames(
+        videos, image_set, board_name, frame_step, split if split is not None else before.split,
+        before.image_size, on_progress,
+    )  # fmt: skip
+    # the frames first: they fix the size of a new session's images, as a video must
+    items = [*frames, *(f for f in files if not is_video_file(f))]
+    found = _read_and_detect(items, image_set, board_name, split, before, method, int(workers),
                              _progress_ticks(on_progress), results)  # fmt: skip
+    _check_videos_found_board(summaries, found, spec)
     results.extend(_image_result(r, found.detections[r.name]) for r in found.records)
     order = {path: index for index, path in enumerate(files)}
     results.sort(key=lambda r: order.get(r.path, -1))
@@ -540,6 +623,7 @@ def detect_images(
         split_source=found.split_source,
         images=results,
         stored=False,
+        videos=summaries,
     )
     if report.exit_code == 2:
         return report
