@@ -1,4 +1,5 @@
-"""The command line: help, the error boundary, info and add-images."""
+"""The command line: help, the error boundary, info, add-images, and the videos given to
+add-images and detect."""
 
 from __future__ import annotations
 
@@ -289,3 +290,113 @@ def test_add_images_refuses_bad_videos_in_one_line_leaving_the_session(tmp_path,
     assert "needs the board" in _refused_without_touching(
         tmp_path / "new.h5", ["add-images", str(tmp_path / "new.h5"), str(clip.path)]
     )
+
+
+# ------------------------------------------------- bad videos for add-images and detect
+
+
+@pytest.fixture(scope="module")
+def bad_videos(tmp_path_factory, clip):
+    """Videos each command must refuse: truncated (a valid clip cut to 40 % of its
+    bytes), a file with a video suffix that is not a video, a clip of a plain grey field
+    (no board in any frame), and the good clip (its frames are 480x320 px)."""
+    folder = tmp_path_factory.mktemp("bad")
+    cut = folder / "cut.avi"
+    cut.write_bytes(clip.path.read_bytes()[: int(clip.path.stat().st_size * 0.4)])
+    junk = folder / "junk.mp4"
+    junk.write_bytes(b"\x00\x00\x00\x18ftypmp42 but nothing else " * 40)
+    blank = folder / "blank.avi"
+    writer = cv2.VideoWriter(str(blank), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, IMAGE_SIZE)
+    for level in (90, 100, 110, 120):
+        writer.write(np.full((IMAGE_SIZE[1], IMAGE_SIZE[0], 3), level, np.uint8))
+    writer.release()
+    return {"cut": cut, "junk": junk, "blank": blank, "good": clip.path}
+
+
+def _session_with_an_image(folder, rng, shape=(IMAGE_SIZE[1], IMAGE_SIZE[0])):
+    """A session holding one random image of ``shape`` (rows, cols), no detections."""
+    folder.mkdir(parents=True, exist_ok=True)
+    session = folder / "s.h5"
+    write_pngs(folder / "png", ["x"], shape, rng)
+    assert runner.invoke(cli.app, ["add-images", str(session), str(folder / "png")]).exit_code == 0
+    return session
+
+
+def _refused_naming(session, args, video, what):
+    """Exit 2, one line naming the video and saying what is wrong and what to do, and the
+    session's bytes unchanged."""
+    message = _refused_without_touching(session, args)
+    assert "Traceback" not in message
+    assert what in message
+    named = f"[{video}]; "
+    assert named in message, message
+    assert len(message.split(named, 1)[1].strip()) > 10  # the hint: what to do
+
+
+COMMANDS = {
+    "add-images": lambda session, video, *extra: ["add-images", str(session), str(video),
+                                                  "--board", BOARD, *extra],
+    "detect": lambda session, video, *extra: ["detect", str(session), str(video),
+                                              "--board", BOARD, *extra],
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+@pytest.mark.parametrize(
+    ("video", "extra", "what"),
+    [
+        ("cut", [], "truncated"),
+        ("cut", ["--frame-step", "2"], "truncated"),
+        ("junk", [], "cannot open the video file"),
+        ("blank", ["--split", str(SPLIT)], "no frame of the video shows the whole board"),
+    ],
+)
+def test_bad_videos_are_one_line_exit_2_and_leave_the_session(
+    tmp_path, rng, bad_videos, command, video, extra, what
+):
+    session = _session_with_an_image(tmp_path, rng)
+    args = COMMANDS[command](session, bad_videos[video], *extra)
+    _refused_naming(session, args, bad_videos[video], what)
+
+
+def test_detect_refuses_a_video_with_no_board_in_any_frame_taken(tmp_path, rng, bad_videos):
+    # with a frame step nothing is picked: the frames are detected, and none has a board
+    session = _session_with_an_image(tmp_path, rng)
+    args = COMMANDS["detect"](session, bad_videos["blank"], "--frame-step", "1", "--split",
+                              str(SPLIT))  # fmt: skip
+    _refused_naming(session, args, bad_videos["blank"], "in either half of the 4 frames taken")
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+@pytest.mark.parametrize("extra", [[], ["--frame-step", "3"]])
+def test_a_video_of_another_frame_size_is_refused(tmp_path, rng, bad_videos, command, extra):
+    session = _session_with_an_image(tmp_path, rng, shape=(48, 64))
+    args = COMMANDS[command](session, bad_videos["good"], *extra)
+    _refused_naming(session, args, bad_videos["good"], "session's images are 64x48 px")
+
+
+def test_detect_stores_the_frames_of_a_video_from_the_command_line(tmp_path, clip):
+    session = tmp_path / "s.h5"
+    args = ["detect", str(session), str(clip.path), "--board", BOARD, "--split", str(SPLIT)]
+    result = runner.invoke(cli.app, [*args, "--json"])
+    assert result.exit_code == 0, result.stderr
+    document = json.loads(result.stdout)
+    picked = document["videos"][0]["picked"]
+    assert [image["frame"] for image in document["images"]] == picked
+    with open_session(session) as s:
+        assert [i.frame for i in s.images_info("calib")] == picked
+    human = runner.invoke(cli.app, [*args, "--frame-step", "4"])
+    assert human.exit_code in (0, 1)
+    assert f"{clip.path}: {len(clip.kinds)} frames, kept 4" in human.stderr
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_a_truncated_video_is_one_line_in_a_real_process(tmp_path, rng, bad_videos, command):
+    # what a user sees: the decoder's own complaints must not reach stderr either
+    session = _session_with_an_image(tmp_path, rng)
+    before = session.read_bytes()
+    result = run_module(*COMMANDS[command](session, bad_videos["cut"]))
+    assert result.returncode == 2
+    assert result.stderr.count("\n") == 1 and result.stderr.startswith("error: ")
+    assert f"[{bad_videos['cut']}]; " in result.stderr and "truncated" in result.stderr
+    assert session.read_bytes() == before

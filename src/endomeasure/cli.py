@@ -493,7 +493,10 @@ def detect(
 
     console = _stderr_console()
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn())
-    with Progress(*columns, console=console, transient=True) as progress:
+    # off a terminal rich would still end the (empty) live display with a newline, and
+    # an error would no longer be one line on stderr
+    bar = Progress(*columns, console=console, transient=True, disable=not console.is_terminal)
+    with bar as progress:
         tasks: dict[str, Any] = {}
 
         def on_progress(stage: str, done: int, total: int) -> None:
