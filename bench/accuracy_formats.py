@@ -21,6 +21,20 @@ table (written to docs/video.md by hand, with this command):
 
     .venv/bin/python bench/accuracy_formats.py [--kinds png8,png16,jpeg75,bayer-png,bayer-jpeg75]
         [--independent-noise]   (the formal precision as if pixel noise were independent)
+
+With ``--calibrate`` (issue 16: "calibrations agree within their predicted +-") every
+kind's session is also calibrated (``endomeasure calibrate --model raytrace``) and
+compared with the 8-bit PNG's calibration on the test set's true corner pixels (both
+halves seen; no image noise, so only the calibrations differ): each point triangulated
+under both models, the difference of every coordinate over the 8-bit calibration's
+predicted standard deviation of that coordinate (its calibration covariance propagated
+to first order, :func:`endomeasure.solvers.uncertainty.linearised` with the
+measurement function of one point); target: max |difference| / sigma <= 2. The same for
+the parameters (difference over the 8-bit calibration's standard deviation). Work is
+kept in ``--keep`` (default ``out/formats`` with ``--calibrate``) and reused when run
+again (sets, sessions, calibrations):
+
+    .venv/bin/python bench/accuracy_formats.py --kinds png8,png16,jpeg75 --calibrate
 """
 
 from __future__ import annotations
@@ -28,19 +42,23 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from _common import ROOT
-from _samples import SETS, detect_samples, detection_errors
+from _samples import SETS, detect_samples, detection_errors, endomeasure
 from endomeasure.simulate.manifest import MANIFEST_NAME, load_manifest
 
 SAMPLES = ROOT / "sample_sessions"
 KINDS = ("png8", "png16", "jpeg75", "bayer-png", "bayer-jpeg75")
 JPEG_QUALITY = 75
 RMS_TOLERANCE_PX = 0.01  # issue 16
+AGREEMENT_SIGMAS = 2.0
+"""Issue 16: calibrations of the kinds agree within their predicted +- (about 2 sigma)."""
+MODEL = "raytrace"
 
 
 def convert(grey: np.ndarray, kind: str) -> tuple[bytes, str]:
@@ -73,9 +91,12 @@ def convert(grey: np.ndarray, kind: str) -> tuple[bytes, str]:
 
 
 def write_kind(kind: str, out: Path) -> Path:
-    """The sample set's calib and test images written as ``kind`` under ``out``."""
+    """The sample set's calib and test images written as ``kind`` under ``out`` (kept
+    when already written)."""
     import cv2
 
+    if (out / MANIFEST_NAME).exists():
+        return out
     manifest = load_manifest(SAMPLES)
     for set_name in list(manifest["sets"]):
         if set_name not in SETS:
@@ -141,6 +162,102 @@ def measure(root: Path, session: Path, independent: bool = False) -> dict:
     )
 
 
+def calibrate(session: Path) -> dict:
+    """The session's raytrace calibration (``calibrate --json`` model entry), computed
+    once and kept next to the session."""
+    saved = session.with_suffix(f".{MODEL}.json")
+    if saved.exists():
+        return json.loads(saved.read_text())
+    out = endomeasure("calibrate", session, "--model", MODEL, "--json")
+    entry = json.loads(out.stdout)["models"][MODEL]
+    saved.write_text(json.dumps(entry))
+    return entry
+
+
+def test_pixels(root: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The true pixels (N, 2) per half of every test-set corner seen in both halves."""
+    from endomeasure.simulate.manifest import load_truth
+
+    manifest = load_manifest(root)
+    left, right = [], []
+    for item in manifest["sets"]["test"]["images"]:
+        pixels = load_truth(root, Path(item["image"]).stem)["corners"]["pixels"]
+        for ql, qr in zip(pixels["left"], pixels["right"], strict=True):
+            if ql is not None and qr is not None:
+                left.append(ql)
+                right.append(qr)
+    return np.asarray(left, dtype=float), np.asarray(right, dtype=float)
+
+
+def point_coordinates(session: Path, ql: np.ndarray, qr: np.ndarray):
+    """The points (N, 3) mm triangulated under the session's model, and each
+    coordinate's predicted standard deviation (N, 3) mm from its calibration covariance."""
+    from endomeasure.io.records import load_calibrated_model
+    from endomeasure.io.session import open_session
+    from endomeasure.solvers.uncertainty import (
+        MeasurementFunction,
+        input_covariance,
+        linearised,
+    )
+
+    with open_session(session) as s:
+        cm = load_calibrated_model(s, MODEL, session)
+    # the image block is needed by the input layout only; its part is not used
+    cov, blocks = input_covariance(1, 0.01, param_cov=cm.param_cov)
+    values, sigmas = [], []
+    for axis in range(3):
+        f = MeasurementFunction(cm.model, lambda p, a=axis: p[..., 0, a], 1, with_params=True)
+        x0 = f.inputs(ql[:, None], qr[:, None])
+        result = linearised(f, x0, cov, blocks=blocks)
+        values.append(result.value)
+        sigmas.append(result.parts["calibration"][1])
+    return np.column_stack(values), np.column_stack(sigmas)
+
+
+def agreement(work: Path, kinds: list[str], sessions: dict[str, Path]) -> tuple[str, bool]:
+    """The calibrations of the kinds against the 8-bit PNG's: Markdown text, and whether
+    every kind agrees within :data:`AGREEMENT_SIGMAS`."""
+    entries = {kind: calibrate(sessions[kind]) for kind in kinds}
+    ql, qr = test_pixels(work / "png8")
+    base_points, base_sigma = point_coordinates(sessions["png8"], ql, qr)
+    base = entries["png8"]
+    lines = [
+        f"{MODEL} calibrations ({len(ql)} test-set corners seen in both halves, true pixels)",
+        "",
+        "| kind | images | RMS px | verdict | max abs diff mm (x, y, z) | 8-bit sigma mm, "
+        "median (x, y, z) | max abs diff / 8-bit sigma | points beyond 2 sigma | max abs "
+        "diff / combined sigma | max param diff / 8-bit sigma (parameter) | max param diff "
+        "/ combined sigma |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    ok = True
+    for kind in kinds:
+        entry = entries[kind]
+        points, sigma = point_coordinates(sessions[kind], ql, qr)
+        diff = points - base_points
+        good = np.isfinite(diff).all(axis=1) & np.isfinite(base_sigma).all(axis=1)
+        ratio = np.abs(diff[good]) / base_sigma[good]
+        worst = float(ratio.max())
+        combined = float(np.max(np.abs(diff[good]) / np.hypot(base_sigma[good], sigma[good])))
+        beyond = int((ratio.max(axis=1) > AGREEMENT_SIGMAS).sum())
+        keys = [key for key in base["params"] if base["std"].get(key)]
+        shift = {key: entry["params"][key] - base["params"][key] for key in keys}
+        params = {key: shift[key] / base["std"][key] for key in keys}
+        name = max(params, key=lambda key: abs(params[key]))
+        params_combined = max(abs(shift[key]) / np.hypot(base["std"][key], entry["std"][key])
+                              for key in keys)  # fmt: skip
+        if kind != "png8" and worst > AGREEMENT_SIGMAS:
+            ok = False
+        max_diff = ", ".join(f"{v:.2g}" for v in np.abs(diff[good]).max(axis=0))
+        median_sigma = ", ".join(f"{v:.2g}" for v in np.median(base_sigma[good], axis=0))
+        lines.append(
+            f"| {kind} | {entry['n_images']} | {entry['rms_px']:.4f} | {entry['verdict']} "
+            f"| {max_diff} | {median_sigma} | {worst:.2f} | {beyond}/{int(good.sum())} "
+            f"| {combined:.2f} | {params[name]:+.2f} ({name}) | {params_combined:.2f} |"
+        )
+    return "\n".join(lines), ok
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--kinds", default=",".join(KINDS))
@@ -148,22 +265,36 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--independent-noise", action="store_true", help="formal precision as if noise were white"
     )
+    parser.add_argument(
+        "--calibrate", action="store_true", help=f"also compare the kinds' {MODEL} calibrations"
+    )
     args = parser.parse_args(argv)
     kinds = [k for k in args.kinds.split(",") if k]
-    results = {}
+    if args.calibrate and "png8" not in kinds:
+        parser.error("--calibrate compares with png8: include it in --kinds")
+    keep = args.keep or (ROOT / "out" / "formats" if args.calibrate else None)
+    results, sessions = {}, {}
     with tempfile.TemporaryDirectory() as tmp:
-        work = args.keep or Path(tmp)
+        work = keep or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
         for kind in kinds:
             root = write_kind(kind, work / kind)
-            session = work / f"{kind}.h5"
-            session.unlink(missing_ok=True)
-            results[kind] = measure(root, session, args.independent_noise)
+            tag = f"{kind}-independent" if args.independent_noise else kind
+            session, saved = work / f"{tag}.h5", work / f"{tag}.detection.json"
+            sessions[kind] = session
+            if keep and saved.exists() and session.exists():
+                results[kind] = json.loads(saved.read_text())
+            else:
+                session.unlink(missing_ok=True)
+                results[kind] = measure(root, session, args.independent_noise)
+                saved.write_text(json.dumps(results[kind]))
             print(kind, json.dumps(results[kind]), flush=True)
+        text, agreed = agreement(work, kinds, sessions) if args.calibrate else ("", True)
     base = results.get("png8")
     print("\n| kind | corners | RMS px | per axis px | RMS - 8-bit PNG px | formal sigma px "
           "| formal / actual | normalised error |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|")
-    status = 0
+    status = 0 if agreed else 3
     for kind, r in results.items():
         diff = r["rms"] - base["rms"] if base else float("nan")
         if base and abs(diff) > RMS_TOLERANCE_PX:
@@ -173,6 +304,12 @@ def main(argv: list[str] | None = None) -> int:
             f"| {r['formal_axis']:.4f} | {r['formal_axis'] / r['rms_axis']:.2f} "
             f"| {r['normalised']:.2f} |"
         )
+    if text:
+        print(f"\n{text}")
+        if not agreed:
+            print(
+                f"missed: a kind's calibration beyond {AGREEMENT_SIGMAS:g} sigma", file=sys.stderr
+            )
     return status
 
 
