@@ -413,13 +413,7 @@ def add_images(
     if json_output:
         _print_json(report.to_dict())
         return
-    for video in report.videos:
-        left_out = ", ".join(f"{reason} {n}" for reason, n in video.left_out.items() if n)
-        console.print(
-            f"{video.path}: {video.frames} frames, kept {len(video.picked)}"
-            + (f" (left out: {left_out})" if left_out else ""),
-            markup=False,
-        )
+    _print_videos(console, report.videos)
     console.print(
         f"{report.session}: added {len(report.added)} {report.image_set} image(s)"
         + (f", {len(report.unchanged)} already present" if report.unchanged else "")
@@ -489,7 +483,6 @@ def detect(
         raise typer.Exit(report.exit_code)
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
-    from rich.table import Table
 
     console = _stderr_console()
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn())
@@ -515,13 +508,26 @@ def detect(
             on_progress=on_progress,
         )
 
-    for video in report.videos:
+    _render_detect(console, report)
+    raise typer.Exit(report.exit_code)
+
+
+def _print_videos(console: Console, videos: list[Any]) -> None:
+    """One line per video: frames decoded, kept, and why the others were left out."""
+    for video in videos:
         left_out = ", ".join(f"{reason} {n}" for reason, n in video.left_out.items() if n)
         console.print(
             f"{video.path}: {video.frames} frames, kept {len(video.picked)}"
             + (f" (left out: {left_out})" if left_out else ""),
             markup=False,
         )
+
+
+def _render_detect(console: Console, report: Any) -> None:
+    """The per-video lines, the per-image table and the summary line of ``detect``."""
+    from rich.table import Table
+
+    _print_videos(console, report.videos)
     table = Table(title=f"detect {report.board} ({report.image_set})", title_justify="left")
     for column in ("image", "status", "left", "right", "edge width px (L/R)"):
         table.add_column(column)
@@ -550,7 +556,6 @@ def detect(
         f"{found}/{examined}; "
         + (f"stored in {report.session}" if report.stored else "nothing stored")
     )
-    raise typer.Exit(report.exit_code)
 
 
 @command("simulate")

@@ -7,6 +7,8 @@ import pytest
 from tests.io.video_data import BOARD, IMAGE_SIZE, SPLIT, write_clip
 
 from endomeasure.errors import BadInputError
+from endomeasure.features.frames import pick_from_clip
+from endomeasure.io.images import sha256_of_file
 from endomeasure.io.video import read_frames, video_info
 from endomeasure.pipeline.images import video_records
 
@@ -51,8 +53,25 @@ def test_the_pick_keeps_each_sharp_pose_once_and_no_blurred_or_half_outside_fram
     assert [r.frame for r in records] == summary.picked
     assert records[0].name == f"clip_f{summary.picked[0]:06d}"
     assert {r.original_path for r in records} == {str(clip.path)}
+    assert {r.sha256 for r in records} == {sha256_of_file(clip.path)}
     assert summary.left_out["board not fully seen"] >= len(clip.frames("half-outside"))
     assert summary.left_out["blurred"] >= 2
+
+
+def test_the_pick_needs_only_a_frame_reader(clip):
+    # features.frames reads no file: the same frames from memory give the same pick
+    frames = list(read_frames(clip.path))
+
+    def read(keep):
+        return [(i, px) for i, px in frames if keep is None or keep(i)]
+
+    done = []
+    pick = pick_from_clip(read, len(frames), lambda d, t: done.append(d), board=BOARD,
+                          split=SPLIT)  # fmt: skip
+    _, summary = video_records(clip.path, "calib", board=BOARD, split=SPLIT)
+    assert pick.picked == summary.picked and pick.frames == len(frames)
+    assert pick.left_out == summary.left_out
+    assert done == list(range(1, len(frames) + 1))
 
 
 def test_the_split_is_found_from_the_clip(clip):

@@ -17,22 +17,27 @@ differ.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
+from endomeasure.errors import BadInputError
 from endomeasure.features.boards import BoardSpec, ChessboardSpec, parse_board_spec
 
 __all__ = [
     "ANISOTROPY_MAX",
     "BLUR_RATIO_MAX",
     "MIN_MOTION",
+    "SPLIT_SAMPLE_FRAMES",
+    "ClipPick",
     "FrameEvidence",
     "FramePick",
     "board_edge_blur_px",
     "edge_blur_by_family",
     "frame_evidence",
     "pick_frames",
+    "pick_from_clip",
     "sharp_envelope",
 ]
 
@@ -61,6 +66,11 @@ derivatives; its variance is subtracted from the result."""
 
 FAST_CHECK_MAX_SIDE_PX = 640
 """Halves larger than this are downscaled (by an integer factor) for the fast check."""
+
+SPLIT_SAMPLE_FRAMES = 16
+"""Frames spread over a clip whose prism band gives the split when none is known."""
+
+LEFT_OUT_REASONS = ("board not fully seen", "blurred", "pose too close to a kept frame")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -370,3 +380,106 @@ def _motion(a: FrameEvidence, b: FrameEvidence) -> float:
     return float(
         np.mean([outline_motion_px(ga, gb) for ga, gb in zip(a.grids, b.grids, strict=True)])
     )
+
+
+class ClipPick(NamedTuple):
+    """The outcome of :func:`pick_from_clip`.
+
+    Attributes
+    ----------
+    frames : int
+        Frames examined.
+    picked : list of int
+        Frame numbers kept, in clip order.
+    split : int, px
+        The split the halves were checked with.
+    reference_blur_px : float, px
+        The clip's sharpest edge blur (:attr:`FramePick.reference_blur_px`).
+    left_out : dict of str -> int
+        Frames not kept, by reason (:data:`LEFT_OUT_REASONS`).
+    """
+
+    frames: int
+    picked: list[int]
+    split: int
+    reference_blur_px: float
+    left_out: dict[str, int]
+
+
+FrameReader = Callable[[Callable[[int], bool] | None], Iterable[tuple[int, np.ndarray]]]
+"""``read(keep)``: the ``(frame number, pixels)`` of a clip's frames that ``keep`` accepts
+(all for None), in order (e.g. :func:`endomeasure.io.video.read_frames` of one file)."""
+
+
+def pick_from_clip(
+    read: FrameReader,
+    total: int,
+    progress: Callable[[int, int], None],
+    *,
+    board: str | None,
+    split: int | None = None,
+    path: str = "",
+) -> ClipPick:
+    """The frames of a clip worth keeping (the rules of :func:`pick_frames`).
+
+    Pass 1, when ``split`` is None: the split from the prism band of
+    :data:`SPLIT_SAMPLE_FRAMES` frames spread over the clip; pass 2: every frame's fast
+    check and blur (:func:`frame_evidence`), reported to ``progress(done, total)``; then
+    the pick over the whole clip.
+
+    Parameters
+    ----------
+    read : FrameReader
+        The clip's frames (the caller opens the file, so this module reads none).
+    total : int
+        Frame count the clip's header states (for the progress only).
+    progress : callable(done, total)
+    board : str or None
+        Board spec; None is refused (the pick needs the board).
+    split : int or None, px
+    path : str
+        The clip's file, for the messages.
+
+    Raises
+    ------
+    BadInputError
+        No board spec, no split found, a split outside the frames, or no frame worth
+        keeping.
+    """
+    from endomeasure.features.detect import to_gray_u8
+
+    if board is None:
+        raise BadInputError(
+            "picking frames from a video needs the board",
+            path=path or None,
+            hint="give --board SPEC, or --frame-step N to take every N-th frame",
+        )
+    spec = parse_board_spec(board)
+    if split is None:
+        from endomeasure.features.split import find_split_in_set, split_evidence
+
+        every = max(1, total // SPLIT_SAMPLE_FRAMES)
+        sample = read(lambda i: i % every == 0)
+        split = find_split_in_set([split_evidence(px) for _, px in sample], path=path or None).split
+    evidence, size = [], None
+    for index, pixels in read(None):
+        progress(index + 1, max(total, index + 1))
+        size = (int(pixels.shape[1]), int(pixels.shape[0]))
+        if not 0 < split < size[0]:
+            raise BadInputError(
+                f"split column {split} is outside the video's frames (width {size[0]} px)",
+                path=path or None,
+            )
+        evidence.append(frame_evidence(index, to_gray_u8(pixels), split, spec))
+    pick = pick_frames(evidence, size)
+    left_out = {reason: pick.count(reason) for reason in LEFT_OUT_REASONS}
+    if not pick.picked:
+        raise BadInputError(
+            f"no frame of the video shows the whole board {spec.canonical()} sharp in both "
+            f"halves ({len(evidence)} frames: board not fully seen in "
+            f"{left_out['board not fully seen']}, blurred {left_out['blurred']})",
+            path=path or None,
+            hint="check the --board spec and the --split, or give --frame-step N",
+        )
+    return ClipPick(len(evidence), pick.picked, int(split), float(pick.reference_blur_px),
+                    left_out)  # fmt: skip

@@ -4,20 +4,34 @@ A video is read front to back, never by seeking (frame-exact seeking is unreliab
 many codecs), so the frame numbers are the positions in the decoded stream, from 0.
 A file that cannot be opened, has no frame, or ends before the frame count its header
 promises is bad input: a truncated clip would otherwise give a silently shorter set.
+
+:func:`video_records` turns a clip into the image records a session stores, every N-th
+frame or the frames a pick chooses; the pick itself is passed in (``add-images`` and
+``detect`` pass :func:`endomeasure.features.frames.pick_from_clip`), so this module
+reads files and knows no detector.
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from endomeasure.errors import BadInputError
 
-__all__ = ["VIDEO_SUFFIXES", "VideoInfo", "is_video_file", "read_frames", "video_info"]
+__all__ = [
+    "VIDEO_SUFFIXES",
+    "VideoInfo",
+    "VideoSummary",
+    "is_video_file",
+    "read_frames",
+    "video_info",
+    "video_records",
+]
 
 VIDEO_SUFFIXES = (
     ".avi", ".mp4", ".m4v", ".mkv", ".mov", ".mpg", ".mpeg", ".wmv", ".webm", ".mjpeg",
@@ -155,3 +169,117 @@ def read_frames(
             path=str(path),
             hint="copy the complete file again",
         )
+
+
+@dataclass(frozen=True)
+class VideoSummary:
+    """What was taken from one video.
+
+    Attributes
+    ----------
+    path : str
+    frames : int
+        Frames decoded.
+    picked : list of int
+        Frame numbers stored.
+    split : int or None, px
+        The split the halves were checked with (None with a frame step).
+    reference_blur_px : float or None, px
+        The clip's sharp reference edge blur (automatic pick only).
+    left_out : dict of str -> int
+        Frames not kept, by reason (automatic pick only).
+    """
+
+    path: str
+    frames: int
+    picked: list[int]
+    split: int | None = None
+    reference_blur_px: float | None = None
+    left_out: dict[str, int] = field(default_factory=dict)
+
+
+def _size_check(size: tuple[int, int], image_size, path: str) -> None:
+    if image_size is not None and size != tuple(image_size):
+        raise BadInputError(
+            f"the video's frames are {size[0]}x{size[1]} px but the session's images are "
+            f"{image_size[0]}x{image_size[1]} px",
+            path=path,
+            hint="a session holds images of one sensor; use another session",
+        )
+
+
+def video_records(
+    path: str | os.PathLike,
+    image_set: str,
+    *,
+    pick: Callable[..., Any] | None = None,
+    frame_step: int | None = None,
+    image_size: tuple[int, int] | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
+) -> tuple[list, VideoSummary]:
+    """The frames of a video worth keeping, as image records named ``<stem>_f<NNNNNN>``.
+
+    Parameters
+    ----------
+    path : path-like
+    image_set : str
+    pick : callable(read, total, progress) -> ClipPick, optional
+        Chooses the frames (:func:`endomeasure.features.frames.pick_from_clip` with its
+        board and split bound); used unless ``frame_step`` is given.
+    frame_step : int, optional
+        Every N-th frame (0, N, 2N, ...) instead.
+    image_size : (width, height), optional, px
+        The session's image size the frames must have.
+    on_progress : callable(done, total), optional
+        After each frame of a pass over the clip.
+
+    Returns
+    -------
+    list of ImageRecord, VideoSummary
+        Each record keeps the video's path, its SHA-256 and the frame number.
+
+    Raises
+    ------
+    BadInputError
+        Unreadable or truncated video, frames of another size than ``image_size``, and
+        whatever ``pick`` refuses.
+    """
+    import hashlib
+
+    from endomeasure.io.session import ImageRecord
+
+    if frame_step is None and pick is None:
+        raise ValueError("video_records needs a pick or a frame step")
+    path = os.fspath(path)
+    info = video_info(path)
+    if info.width > 0:
+        _size_check((info.width, info.height), image_size, path)
+    total = info.frame_count
+    progress = on_progress or (lambda done, total: None)
+    # the video file's SHA-256, as io.images gives an image file's (not imported from
+    # there: io.images imports this module)
+    with open(path, "rb") as stream:
+        digest = hashlib.file_digest(stream, "sha256").hexdigest()
+    stem = os.path.splitext(os.path.basename(path))[0]
+
+    def record(index: int, pixels) -> ImageRecord:
+        return ImageRecord(name=f"{stem}_f{index:06d}", pixels=pixels, original_path=path,
+                           sha256=digest, image_set=image_set, frame=index)  # fmt: skip
+
+    if frame_step is not None:
+        step = int(frame_step)
+        records = []
+        for index, pixels in read_frames(path, keep=lambda i: i % step == 0):
+            progress(index + 1, max(total, index + 1))
+            records.append(record(index, pixels))
+        frames = max(total, records[-1].frame + 1)
+        summary = VideoSummary(path, frames, [r.frame for r in records])
+    else:
+        chosen = pick(lambda keep: read_frames(path, keep=keep), total, progress)
+        summary = VideoSummary(path, chosen.frames, list(chosen.picked), chosen.split,
+                               chosen.reference_blur_px, dict(chosen.left_out))  # fmt: skip
+        wanted = set(summary.picked)
+        records = [record(i, px) for i, px in read_frames(path, keep=wanted.__contains__)]
+    _size_check((int(records[0].pixels.shape[1]), int(records[0].pixels.shape[0])),
+                image_size, path)  # fmt: skip
+    return records, summary

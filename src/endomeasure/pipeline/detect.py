@@ -1,10 +1,11 @@
 """``endomeasure detect``: board corners in both halves of many images, into the session.
 
-Steps: expand the given paths; take the frames of every video first (picked, or every
-N-th, by :func:`endomeasure.pipeline.images.video_records`, the code ``add-images``
-uses); read and decode every image file (per-file errors are results, not exceptions);
-fix the split (the session's stored split, a given column, or the band
-fitted to all images at once by :func:`endomeasure.features.split.find_split_in_set`);
+Steps: expand the given paths; take the frames of every video first (picked by
+:func:`endomeasure.features.frames.pick_from_clip`, or every N-th, through
+:func:`endomeasure.io.video.video_records`: what ``add-images`` does); read and decode
+every image file (per-file errors are results, not exceptions); fix the split (the
+session's stored split, a given column, or the band fitted to all images at once by
+:func:`endomeasure.features.split.find_split_in_set`);
 detect in both halves of every image (:func:`endomeasure.features.detect.detect_split_image`);
 then store images, board, split and detections in one atomic session edit. Reading and
 detection run in ``workers`` processes (``concurrent.futures.ProcessPoolExecutor``);
@@ -92,7 +93,7 @@ class DetectReport:
     stored : bool
         Whether the session was written (not when nothing usable was found).
     videos : list of VideoSummary
-        What was taken from each video given (:mod:`endomeasure.pipeline.images`).
+        What was taken from each video given (:class:`endomeasure.io.video.VideoSummary`).
     """
 
     session: str
@@ -485,18 +486,21 @@ def _store(session_path: Path, spec, board_name: str, found: _Detected, method) 
 
 
 def _video_frames(videos, image_set, board_name, frame_step, split, image_size, on_progress):
-    """The frames of every video (:func:`endomeasure.pipeline.images.video_records`: the
-    pick ``add-images`` makes, or every ``frame_step``-th frame), all of one size: the
-    session's, else the first video's. Returns the records and one summary per video."""
-    from endomeasure.pipeline.images import video_records
+    """The frames of every video (the pick ``add-images`` makes, or every
+    ``frame_step``-th frame), all of one size: the session's, else the first video's.
+    Returns the records and one summary per video."""
+    import functools
+
+    from endomeasure.features.frames import pick_from_clip
+    from endomeasure.io.video import video_records
 
     progress = on_progress or (lambda stage, done, total: None)
     records, summaries = [], []
     for video in videos:
         stage = f"reading {os.path.basename(video)}"
+        pick = functools.partial(pick_from_clip, board=board_name, split=split, path=video)
         frames, summary = video_records(
-            video, image_set, board=board_name, frame_step=frame_step, split=split,
-            image_size=image_size,
+            video, image_set, pick=pick, frame_step=frame_step, image_size=image_size,
             on_progress=lambda done, total, stage=stage: progress(stage, done, total),
         )  # fmt: skip
         image_size = image_size or (int(frames[0].pixels.shape[1]), int(frames[0].pixels.shape[0]))

@@ -3,47 +3,18 @@ session (creating it if needed)."""
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from endomeasure.errors import BadInputError
-from endomeasure.io.images import find_image_files, read_image_file, sha256_of_file
+from endomeasure.io.images import find_image_files, read_image_file
 from endomeasure.io.session import ImageRecord, edit_session, open_session
-from endomeasure.io.video import is_video_file
+from endomeasure.io.video import VideoSummary, is_video_file
 
 __all__ = ["AddImagesReport", "VideoSummary", "add_images", "video_records"]
-
-SPLIT_SAMPLE_FRAMES = 16
-"""Frames spread over a clip whose prism band gives the split when none is known."""
-
-
-@dataclass(frozen=True)
-class VideoSummary:
-    """What was taken from one video.
-
-    Attributes
-    ----------
-    path : str
-    frames : int
-        Frames decoded.
-    picked : list of int
-        Frame numbers stored.
-    split : int or None, px
-        The split the halves were checked with (None with a frame step).
-    reference_blur_px : float or None, px
-        The clip's sharp reference edge blur (automatic pick only).
-    left_out : dict of str -> int
-        Frames not kept, by reason (automatic pick only).
-    """
-
-    path: str
-    frames: int
-    picked: list[int]
-    split: int | None = None
-    reference_blur_px: float | None = None
-    left_out: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -202,9 +173,10 @@ def video_records(
     """The frames of a video worth keeping, as image records named ``<stem>_f<NNNNNN>``.
 
     With ``frame_step`` every N-th frame; otherwise frames picked by
-    :func:`endomeasure.features.frames.pick_frames` (sharp, the whole board in both
-    halves, distinct poses), which needs ``board``. Each record keeps the video's path,
-    its SHA-256 and the frame number.
+    :func:`endomeasure.features.frames.pick_from_clip` (sharp, the whole board in both
+    halves, distinct poses), which needs ``board``; the split is found from the clip
+    when None. Each record keeps the video's path, its SHA-256 and the frame number
+    (:func:`endomeasure.io.video.video_records`; ``detect`` makes the same call).
 
     Raises
     ------
@@ -212,96 +184,9 @@ def video_records(
         Unreadable or truncated video, frames of another size than ``image_size``, no
         board spec for the pick, no split found, or no frame worth keeping.
     """
-    from endomeasure.io.video import read_frames, video_info
+    from endomeasure.features.frames import pick_from_clip
+    from endomeasure.io.video import video_records as records_of_video
 
-    path = os.fspath(path)
-    info = video_info(path)
-    if image_size is not None and info.width > 0 and (info.width, info.height) != tuple(image_size):
-        raise BadInputError(
-            f"the video's frames are {info.width}x{info.height} px but the session's images "
-            f"are {image_size[0]}x{image_size[1]} px",
-            path=path,
-            hint="a session holds images of one sensor; use another session",
-        )
-    total = info.frame_count
-    progress = on_progress or (lambda done, total: None)
-    digest = sha256_of_file(path)
-    stem = os.path.splitext(os.path.basename(path))[0]
-
-    def record(index: int, pixels) -> ImageRecord:
-        return ImageRecord(name=f"{stem}_f{index:06d}", pixels=pixels, original_path=path,
-                           sha256=digest, image_set=image_set, frame=index)  # fmt: skip
-
-    if frame_step is not None:
-        step = int(frame_step)
-        frames = read_frames(path, keep=lambda i: i % step == 0)
-        records = [record(i, px) for i, px in _with_progress(frames, total, progress)]
-        summary = VideoSummary(path, max(total, records[-1].frame + 1), [r.frame for r in records])
-    else:
-        summary = _pick(path, board, split, total, progress)
-        wanted = set(summary.picked)
-        records = [record(i, px) for i, px in read_frames(path, keep=wanted.__contains__)]
-    size = (int(records[0].pixels.shape[1]), int(records[0].pixels.shape[0]))
-    if image_size is not None and size != tuple(image_size):
-        raise BadInputError(
-            f"the video's frames are {size[0]}x{size[1]} px but the session's images are "
-            f"{image_size[0]}x{image_size[1]} px",
-            path=path,
-            hint="a session holds images of one sensor; use another session",
-        )
-    return records, summary
-
-
-def _with_progress(frames, total: int, progress):
-    """Pass the frames on, reporting each one to ``progress(done, total)``."""
-    for index, pixels in frames:
-        progress(index + 1, max(total, index + 1))
-        yield index, pixels
-
-
-def _pick(path: str, board: str | None, split: int | None, total: int, progress) -> VideoSummary:
-    """Pass 1 (when the split is unknown): the split from frames spread over the clip;
-    pass 2: every frame's fast check and blur; then the pick."""
-    from endomeasure.features.boards import parse_board_spec
-    from endomeasure.features.detect import to_gray_u8
-    from endomeasure.features.frames import frame_evidence, pick_frames
-    from endomeasure.io.video import read_frames
-
-    if board is None:
-        raise BadInputError(
-            "picking frames from a video needs the board",
-            path=path,
-            hint="give --board SPEC, or --frame-step N to take every N-th frame",
-        )
-    spec = parse_board_spec(board)
-    if split is None:
-        from endomeasure.features.split import find_split_in_set, split_evidence
-
-        every = max(1, total // SPLIT_SAMPLE_FRAMES)
-        sample = read_frames(path, keep=lambda i: i % every == 0)
-        evidence = [split_evidence(pixels) for _, pixels in sample]
-        split = find_split_in_set(evidence, path=path).split
-    evidence, size = [], None
-    for index, pixels in _with_progress(read_frames(path), total, progress):
-        size = (int(pixels.shape[1]), int(pixels.shape[0]))
-        if not 0 < split < size[0]:
-            raise BadInputError(
-                f"split column {split} is outside the video's frames (width {size[0]} px)",
-                path=path,
-            )
-        evidence.append(frame_evidence(index, to_gray_u8(pixels), split, spec))
-    pick = pick_frames(evidence, size)
-    left_out = {
-        reason: pick.count(reason)
-        for reason in ("board not fully seen", "blurred", "pose too close to a kept frame")
-    }
-    if not pick.picked:
-        raise BadInputError(
-            f"no frame of the video shows the whole board {spec.canonical()} sharp in both "
-            f"halves ({len(evidence)} frames: board not fully seen in "
-            f"{left_out['board not fully seen']}, blurred {left_out['blurred']})",
-            path=path,
-            hint="check the --board spec and the --split, or give --frame-step N",
-        )
-    reference = pick.reference_blur_px
-    return VideoSummary(path, len(evidence), pick.picked, int(split), float(reference), left_out)
+    pick = functools.partial(pick_from_clip, board=board, split=split, path=os.fspath(path))
+    return records_of_video(path, image_set, pick=pick, frame_step=frame_step,
+                            image_size=image_size, on_progress=on_progress)  # fmt: skip
