@@ -112,6 +112,11 @@ RAY_FIT_NFEV = 40  # a cap: a backward fit still far from converged then is a po
 RANKED_PER_GLASS = 2
 """Backward fits of each glass refined on the pixels: the backward cost ranks the
 candidates of one glass only roughly."""
+FIRST_BUDGET_NFEV = 10
+"""Residual evaluations of each ranked candidate in the first round of the halving
+(:func:`_halved`); every later round doubles it."""
+SAME_COST_FRACTION = 0.01
+"""Candidates whose pixel costs differ by less than this fraction reached the same fit."""
 PIXEL_CORNERS_PER_HALF = 8
 """Corners per image and half on which the surviving candidates are refined with every
 board pose and ranked by pixel cost: every view at a fraction of the full fit's cost,
@@ -365,8 +370,8 @@ def _searched(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
     pair's own model error limits it), so the best few of each glass are refined on the
     pixels of a few corners of every view with its board poses (from
     ``T_raytrace_left T_left_board``) and its glass still held, and ranked by that
-    cost, the calibration's own; the winner is refined once more with the glass free
-    unless calibration holds it.
+    cost, the calibration's own, by successive halving (:func:`_halved`); the winner is
+    refined once more with the glass free unless calibration holds it.
     """
     obs = ctx.obs
     R = rotation_matrix(rvecs)[obs.image]
@@ -387,26 +392,12 @@ def _searched(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
     for fits in of_glass.values():
         distinct = []  # candidates that reached the same fit count once
         for f in sorted(fits, key=lambda f: f[3]):
-            if not any(abs(f[3] - d[3]) <= 0.01 * d[3] for d in distinct):
+            if not any(abs(f[3] - d[3]) <= SAME_COST_FRACTION * d[3] for d in distinct):
                 distinct.append(f)
         ranked.extend(distinct[:RANKED_PER_GLASS])
     _debug(f"ray fits: {[(round(f[0].n_glass, 2), round(f[3], 2)) for f in ranked]}")
     views = _subset(obs, _rank_rows(obs, PIXEL_CORNERS_PER_HALF))
-    best = None
-    for model, R_t, t_t, _ in ranked:
-        rv = rotation_vector(R_t @ rotation_matrix(rvecs))
-        tv = tvecs @ R_t.T + t_t
-        try:
-            fit = ctx.refine(model, views, rv, tv)
-        except CalibrationError:
-            continue
-        cost = _pixel_cost(fit, views)
-        _debug(f"ranked n {model.n_glass:.2f} cost {cost:.3f} nfev {fit.nfev} status {fit.status}")
-        if best is None or cost < best[0]:
-            best = (cost, fit)
-    if best is None:
-        raise CalibrationError("no start of the raytrace model traces the corners")
-    cost, fit = best
+    cost, fit = _halved(ctx, views, ranked, rvecs, tvecs)
     if "n_glass" in ctx.config.fixed:
         return fit
     try:
@@ -417,6 +408,45 @@ def _searched(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
     freed_cost = _pixel_cost(freed, views)
     _debug(f"glass freed: n {freed.model.n_glass:.3f} cost {freed_cost:.3f}")
     return freed if freed_cost <= cost else fit
+
+
+def _halved(ctx: StartContext, views: Observations, ranked, rvecs, tvecs):
+    """The ranked candidates refined on ``views`` by successive halving: every one gets
+    :data:`FIRST_BUDGET_NFEV` evaluations, the better half (by pixel cost; candidates
+    that reached the same cost count once) twice as many more from where it stopped, and
+    so on until one is left, which is refined to convergence. Returns (cost, fit).
+
+    A wrong candidate's cost stays far above the right one's after a few steps, while
+    candidates that reach the same fit are refined only once; all of them refined to
+    convergence cost several times more.
+    """
+    alive = []
+    for model, R_t, t_t, _ in ranked:
+        rv = rotation_vector(R_t @ rotation_matrix(rvecs))
+        alive.append((model, rv, tvecs @ R_t.T + t_t, None))
+    budget = FIRST_BUDGET_NFEV
+    while True:
+        last = len(alive) == 1
+        scored = []
+        for model, rv, tv, state in alive:
+            try:
+                fit = ctx.refine(model, views, rv, tv, state, None if last else budget)
+            except CalibrationError:
+                continue
+            scored.append((_pixel_cost(fit, views), fit))
+        if not scored:
+            raise CalibrationError("no start of the raytrace model traces the corners")
+        scored.sort(key=lambda cf: cf[0])
+        _debug(f"halving, budget {budget}: {[(round(c, 3), f.nfev) for c, f in scored]}")
+        if last:
+            return scored[0]
+        distinct = []
+        for c, f in scored:
+            if not any(abs(c - d[0]) <= SAME_COST_FRACTION * d[0] for d in distinct):
+                distinct.append((c, f))
+        keep = distinct[: max(1, len(distinct) // 2)]
+        alive = [(f.model, f.rvecs, f.tvecs, f.state) for _, f in keep]
+        budget *= 2
 
 
 def _pixel_cost(fit, obs: Observations) -> float:

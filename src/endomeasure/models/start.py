@@ -98,9 +98,10 @@ class Start(NamedTuple):
 
 
 Refine = Callable[..., Fit]
-"""``refine(model, observations, rvecs, tvecs, state=None) -> Fit``: the solver's bundle
-adjustment of the model's free parameters and the poses over all the given observations,
-warm-started from a projector ``state`` over the same observations."""
+"""``refine(model, observations, rvecs, tvecs, state=None, max_nfev=None) -> Fit``: the
+solver's bundle adjustment of the model's free parameters and the poses over all the given
+observations, warm-started from a projector ``state`` over the same observations, with at
+most ``max_nfev`` residual evaluations (default: the calibration's own limit)."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -791,10 +791,11 @@ class _Chain:
         self.obs, self.config, self.options, self.given = obs, config, options, given
         self.nfev = 0  # residual evaluations spent on starts
 
-    def refine(self, model, obs, rvecs, tvecs, state=None):
+    def refine(self, model, obs, rvecs, tvecs, state=None, max_nfev=None):
         """The bundle adjustment an initialiser may call (:class:`StartContext`)."""
         use = np.ones(obs.image.size, dtype=bool)
-        fit = refine(model, obs, rvecs, tvecs, use, self.options.max_nfev, state)
+        limit = self.options.max_nfev if max_nfev is None else min(max_nfev, self.options.max_nfev)
+        fit = refine(model, obs, rvecs, tvecs, use, limit, state)
         self.nfev += fit.nfev
         return fit
 
