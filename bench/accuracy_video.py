@@ -10,8 +10,10 @@ in the still set. Each clip is written by ``cv2.VideoWriter`` (MJPG, colour) and
 to the commands a user runs:
 
     endomeasure add-images video.h5 clip_<board>.avi --board <spec> --split <split> --json
-    endomeasure detect ...  (on the picked frames, exported losslessly as PNG)
-    endomeasure calibrate ... --json
+    endomeasure detect video_detect.h5 clip_<board>.avi --board <spec> --split <split> --json
+    endomeasure calibrate video_detect.h5 --json
+
+(``detect`` picks the same frames as ``add-images``, checked here)
 
 and the still set goes through ``detect`` and ``calibrate`` as it is (first: its split,
 found by ``detect`` from the prism band, is the one the clips are checked with; one clip
@@ -167,9 +169,10 @@ def main(argv: list[str] | None = None) -> int:
         )
         if counts["blurred"][0] or any(name not in whole for name in partial):
             misses.append(f"{spec}: blurred frames or partial frames with corners lost picked")
-        frames = work / "frames" / spec.split(":")[-1]
-        export_frames_of(video_session, frames, video["picked"], clip["path"])
-        run("detect", detect_session, frames, "--board", spec, "--split", split)
+        out = run("detect", detect_session, clip["path"], "--board", spec, "--split", split,
+                  "--json")  # fmt: skip
+        if json.loads(out.stdout)["videos"][0]["picked"] != video["picked"]:
+            misses.append(f"{spec}: detect picked other frames than add-images")
 
     still, from_video = calibrate(still_session, args.model), calibrate(detect_session, args.model)
 
@@ -209,21 +212,6 @@ def main(argv: list[str] | None = None) -> int:
     for miss in misses:
         print(f"missed: {miss}", file=sys.stderr)
     return 3 if misses else 0
-
-
-def export_frames_of(session: Path, folder: Path, picked: list[int], clip: Path) -> None:
-    """The picked frames of one clip from the session, as PNG files named like the
-    session's images."""
-    import cv2
-
-    from endomeasure.io.session import open_session
-
-    folder.mkdir(parents=True, exist_ok=True)
-    stem = clip.stem
-    with open_session(session) as s:
-        for index in picked:
-            name = f"{stem}_f{index:06d}"
-            cv2.imwrite(str(folder / f"{name}.png"), s.image(name))
 
 
 if __name__ == "__main__":
