@@ -23,7 +23,9 @@ the raytrace board test runs when that calibration is usable. Recorded per desig
 Results go to ``WORK/designs.jsonl`` as each design finishes (a rerun skips designs
 already there; ``--no-run`` only summarises them), and the "designs" section of
 docs/accuracy.md unless ``--no-write``.
-``--rejudge`` redoes the board figures of the designs WORK holds from their stored sessions.
+``--recalibrate`` calibrates the detected designs WORK holds again (after a change of the
+solvers; renders and detections are kept); ``--rejudge`` redoes only the board figures of
+the designs WORK holds, from their stored sessions.
 ``--quick``: designs 1-2. Targets (issue 15): ray-tracing fit RMS <= 1.25x the detection
 floor on at least 38 of 40; none exits 0 above 2x; board-test figures on every converged
 design; outliers <= 3 % on at least 36; median calibrate time <= 10 s.
@@ -195,6 +197,15 @@ def run_design(seed: int, work: Path) -> dict:
     with open_session(session) as s:
         out["split"] = s.metadata().split
     out["detection"] = _detection_floor(session, folder)
+    return calibrated(out, session, folder)
+
+
+DETECTED_KEYS = ("seed", "simulate_s", "true_split", "image_size", "split", "detection")
+"""What :func:`run_design` records before ``calibrate``: kept by ``--recalibrate``."""
+
+
+def calibrated(out: dict, session: Path, folder: Path) -> dict:
+    """``out`` with the calibration (both models), the peer's time and the board test."""
     t, cpu = time.perf_counter(), _children_cpu()
     code, stdout, err = _run("calibrate", str(session), "--model", "all", "--json")
     out["calibrate_s"] = time.perf_counter() - t
@@ -361,6 +372,10 @@ def main(argv=None) -> int:
         "--no-run", action="store_true", help="only summarise the designs WORK already holds"
     )
     parser.add_argument(
+        "--recalibrate", action="store_true",
+        help="calibrate and board-test again every detected design WORK holds (the code changed)",
+    )  # fmt: skip
+    parser.add_argument(
         "--rejudge", action="store_true",
         help="redo the board test of every usable design WORK holds, from its stored session",
     )  # fmt: skip
@@ -375,13 +390,21 @@ def main(argv=None) -> int:
         for line in store.read_text().splitlines():
             r = json.loads(line)
             done[r["seed"]] = r
+    if args.recalibrate:
+        for seed in [s for s in seeds if s in done and "detection" in done[s]]:
+            stem = work / f"design_{seed:03d}"
+            kept = {k: done[seed][k] for k in DETECTED_KEYS if k in done[seed]}
+            done[seed] = calibrated(kept, stem.with_suffix(".h5"), stem)
+            print(_row(done[seed]), flush=True)
+            store.write_text("".join(json.dumps(r) + "\n" for r in done.values()))
     if args.rejudge:
         for seed, r in sorted(done.items()):
             if "board" in r:
                 stem = work / f"design_{seed:03d}"
                 r["board"] = _board_figures(stem.with_suffix(".h5"), stem)
         store.write_text("".join(json.dumps(r) + "\n" for r in done.values()))
-    todo = [] if args.no_run or args.rejudge else [s for s in seeds if s not in done]
+    again = args.no_run or args.rejudge or args.recalibrate
+    todo = [] if again else [s for s in seeds if s not in done]
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         for r in pool.map(run_design, todo, [work] * len(todo)):
             done[r["seed"]] = r
