@@ -173,6 +173,16 @@ SigmaOption = Annotated[
 JsonOption = Annotated[
     bool, typer.Option("--json", help="Print one JSON document on stdout instead of tables.")
 ]
+FrameStepOption = Annotated[
+    int | None,
+    typer.Option(
+        "--frame-step",
+        metavar="N",
+        help="Take every N-th video frame instead of picking sharp, distinct frames that "
+        "show the whole board in both halves.",
+        show_default=False,
+    ),
+]
 
 
 def main() -> None:
@@ -374,16 +384,7 @@ def add_images(
             show_default=False,
         ),
     ] = None,
-    frame_step: Annotated[
-        int | None,
-        typer.Option(
-            "--frame-step",
-            metavar="N",
-            help="Take every N-th video frame instead of picking sharp, distinct frames "
-            "that show the whole board in both halves.",
-            show_default=False,
-        ),
-    ] = None,
+    frame_step: FrameStepOption = None,
     split: Annotated[
         str,
         typer.Option(
@@ -455,16 +456,7 @@ def detect(
         ),
     ] = "auto",
     workers: Annotated[int, typer.Option("--workers", help="Processes to use.")] = 1,
-    frame_step: Annotated[
-        int | None,
-        typer.Option(
-            "--frame-step",
-            metavar="N",
-            help="Take every N-th video frame instead of picking sharp, distinct frames "
-            "that show the whole board in both halves.",
-            show_default=False,
-        ),
-    ] = None,
+    frame_step: FrameStepOption = None,
     json_output: JsonOption = False,
 ) -> None:
     """Find target corners in both halves of every image (and of the frames taken from
