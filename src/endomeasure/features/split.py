@@ -565,12 +565,31 @@ class _BandFit:
         candidate apex column, by reweighted least squares."""
         s = self.noise[:, k, columns]
         t = self.transmission(columns[None, :] - apex[:, None])
-        weight = np.broadcast_to(1.0 / s**2, (len(apex), *s.shape))
+        weight = np.broadcast_to(self._two_sided(k, columns)[:, None] / s**2,
+                                 (len(apex), *s.shape))  # fmt: skip
         for _ in range(_REWEIGHTS):
             r, _ = self._residuals(k, columns, apex, weight, t)
-            weight = np.where(np.abs(r) < OUTLIER_SCALES, 1.0 / s**2, 0.0)
+            weight = np.where(np.abs(r) < OUTLIER_SCALES, weight, 0.0)
         r, _ = self._residuals(k, columns, apex, weight, t)
         return r, weight
+
+    def _two_sided(self, k: int, columns: np.ndarray) -> np.ndarray:
+        """1 for the profiles (M,) whose window has light on both sides of the dip, 0 for
+        the others: where the darker side's light (so its whole dip) is within the scene
+        misfit allowed on the brighter side (``SCENE_MISFIT``), that side tells nothing and
+        a blurred scene edge on the other looks like a flank of the band at any column
+        along it (a board's edge on a black background): the fit placed the band there."""
+        p = self.profiles[:, k, columns] - self.dark
+        x = columns - self.centres[k]
+        left, right = x < -self.extent, x > self.extent
+        if not (left.any() and right.any()):
+            return np.ones(len(p))
+        floor = self.noise[:, k, columns].mean(axis=1)
+        lo = np.maximum(
+            np.minimum(np.median(p[:, left], axis=1), np.median(p[:, right], axis=1)), 0.0
+        )
+        hi = np.maximum(np.median(p[:, left], axis=1), np.median(p[:, right], axis=1))
+        return (SCENE_MISFIT * hi <= lo + floor).astype(float)
 
     # -- the steps
     def _cost(self, k, columns, grid) -> np.ndarray:
