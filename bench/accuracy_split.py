@@ -10,8 +10,10 @@ For every design seed: the design ``endomeasure simulate OUT --preset random
 (seed 0), and ``--images`` of the images of its first board group (the group
 ``endomeasure detect`` fixes the split from, ``board_groups`` order), evenly spread, are
 rendered with the simulator's noise through the simulate package's Python API (the same
-pixels the command writes). The split is found as ``detect`` finds it without
-``--split``: :func:`endomeasure.features.split.find_split_in_set` over the images'
+pixels the command writes); ``--images 0``: every image of that group, the images the first
+``detect`` call of ``bench/accuracy_designs.py`` receives and fixes the split from. The
+split is found as ``detect`` finds it without ``--split``:
+:func:`endomeasure.features.split.find_split_in_set` over the images'
 :func:`~endomeasure.features.split.split_evidence`. The truth is the manifest's split,
 ``TruthOptics.apex_split()``: the column boundary nearest the apex image at the middle row.
 The default preset is measured on the bundled renders of ``sample_sessions`` (the first
@@ -67,8 +69,8 @@ def _finder_version() -> str:
 
 
 def _spread(items: list, count: int) -> list:
-    """``count`` items evenly spread over ``items`` (all of them if fewer)."""
-    if count >= len(items):
+    """``count`` items evenly spread over ``items`` (all of them if fewer, or if 0)."""
+    if count <= 0 or count >= len(items):
         return list(items)
     return [items[i] for i in np.linspace(0, len(items) - 1, count).round().astype(int)]
 
@@ -218,7 +220,7 @@ def _summarise(results: list[dict], default: dict, report: Report, label: str, c
         else f"refused: {default['refused']}"
     )
     lines = [
-        f"Designs {label}, {count} images of each design's first calibration board group "
+        f"Designs {label}, {count or 'all'} images of each design's first calibration board group "
         f"(the images `endomeasure detect` fixes the split from); made by "
         "`python bench/accuracy_split.py --work out/split_designs`. The split is found as "
         "`detect` finds it without `--split`; the truth is the manifest's `split` "
@@ -247,7 +249,7 @@ def main(argv=None) -> int:
     parser = script_parser(__doc__, work=True)
     parser.add_argument("--designs", default=DEFAULT_DESIGNS, help="seeds, e.g. 1-40 or 1,5")
     parser.add_argument("--images", type=int, default=DEFAULT_IMAGES,
-                        help=f"images per design ({DEFAULT_IMAGES})")  # fmt: skip
+                        help=f"images per design ({DEFAULT_IMAGES}; 0: all)")  # fmt: skip
     parser.add_argument(
         "--scene-misfit", type=float, default=None,
         help="another SCENE_MISFIT of the finder, for a sensitivity run (implies --no-write)",
