@@ -38,7 +38,13 @@ Method
    trial fits on a geometric scan of ``X``; where the fitted dip's half-width ``h``
    makes ``2.5 h / X`` fall through 1 (the largest such ``X``), then ``X = 2.5 h``
    (``EXTENT_PER_HALF_WIDTH``). The first pass follows the band from the middle row band
-   outwards; the later ones re-centre every window on the fitted apex line.
+   outwards; the later ones re-centre every window on the fitted apex line. The fit is
+   made twice: on every profile, and on only those with light on both sides of the dip
+   (the darker side's light above the scene misfit of the brighter side's): where one
+   side is black, a blurred scene edge on the other (a small board on a black
+   background) fits a flank of the band at any column, while a board under the band
+   shows its true flank; the fit whose band is the more significant valley over every
+   profile (the test below, ``MIN_VALLEY_SIGMAS``) is kept.
 4. The apex line ``a(v)``: a quadratic through the row bands' ``a_k``, weighted by their
    information (the cost's curvature) with one extra variance for all that brings the
    reduced chi-square to 1 (the bands' systematic scatter), and by a Gaussian in the
@@ -303,13 +309,20 @@ def find_split_in_set(evidence: Sequence[SplitEvidence], path: str | None = None
             path=path,
             hint=_HINT,
         )
-    fit, line = _fit_band(profiles, noise, rows, coarse, width)
-    half_width = fit.half_width()
-    significance = (
-        _valley_significance(profiles, noise, line.columns(rows), half_width)
-        if line is not None and np.isfinite(half_width)
-        else 0.0
-    )
+    # two fits: every profile, and only those with light on both sides (_BandFit.two_sided);
+    # the one whose band the valley test over every profile finds the darker is kept
+    best = None
+    for two_sided in (False, True):
+        fit, line = _fit_band(profiles, noise, rows, coarse, width, two_sided)
+        half_width = fit.half_width()
+        significance = (
+            _valley_significance(profiles, noise, line.columns(rows), half_width)
+            if line is not None and np.isfinite(half_width)
+            else 0.0
+        )
+        if best is None or significance > best[0]:
+            best = (significance, fit, line, half_width)
+    significance, fit, line, half_width = best
     if not significance >= MIN_VALLEY_SIGMAS:
         raise BadInputError(
             "no dark band between the halves found (the band fitted is not darker than"
@@ -499,8 +512,10 @@ class _Line:
 class _BandFit:
     """The band model fitted to every profile near the coarse column (module notes, 3)."""
 
-    def __init__(self, profiles, noise, rows, column: int, extent: float, width: int):
+    def __init__(self, profiles, noise, rows, column: int, extent: float, width: int,
+                 two_sided: bool = False):  # fmt: skip
         self.profiles = profiles  # (M, K, W)
+        self.two_sided = two_sided  # only profiles lit on both sides (_two_sided)
         # no darker than any row band's mean: the sensor's dark level is below every
         # value it records (the band alone cannot tell a dark level from a deep band)
         self.darkest = float(profiles.min())
@@ -565,7 +580,8 @@ class _BandFit:
         candidate apex column, by reweighted least squares."""
         s = self.noise[:, k, columns]
         t = self.transmission(columns[None, :] - apex[:, None])
-        weight = np.broadcast_to(self._two_sided(k, columns)[:, None] / s**2,
+        kept = self._two_sided(k, columns) if self.two_sided else np.ones(len(s))
+        weight = np.broadcast_to(kept[:, None] / s**2,
                                  (len(apex), *s.shape))  # fmt: skip
         for _ in range(_REWEIGHTS):
             r, _ = self._residuals(k, columns, apex, weight, t)
@@ -738,7 +754,8 @@ class _BandFit:
         return self._fit_line()
 
 
-def _fit_band(profiles, noise, rows, column: int, width: int) -> tuple[_BandFit, _Line | None]:
+def _fit_band(profiles, noise, rows, column: int, width: int,
+              two_sided: bool = False) -> tuple[_BandFit, _Line | None]:  # fmt: skip
     """The band fit at the extent where the fitted dip's half-width is consistent with it:
     the largest extent of a geometric scan at which the ratio of
     :meth:`_BandFit.trial` falls through 1 (interpolated), then refined."""
@@ -751,7 +768,7 @@ def _fit_band(profiles, noise, rows, column: int, width: int) -> tuple[_BandFit,
         extents = [0.5 * MAX_BAND_FRACTION * width]
     ratios = []
     for extent in extents:
-        trial = _BandFit(profiles, noise, rows, column, extent, width)
+        trial = _BandFit(profiles, noise, rows, column, extent, width, two_sided)
         ratios.append(trial.trial(2, max(3.0, 0.5 * extent)))
     chosen = extents[int(np.argmax(ratios))]
     for j in range(len(extents) - 1, 0, -1):
@@ -759,5 +776,5 @@ def _fit_band(profiles, noise, rows, column: int, width: int) -> tuple[_BandFit,
             t = (ratios[j - 1] - 1.0) / (ratios[j - 1] - ratios[j])
             chosen = float(np.exp(np.log(extents[j - 1]) + t * np.log(EXTENT_SCAN_STEP)))
             break
-    fit = _BandFit(profiles, noise, rows, column, chosen, width)
+    fit = _BandFit(profiles, noise, rows, column, chosen, width, two_sided)
     return fit, fit.run()
