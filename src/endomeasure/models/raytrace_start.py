@@ -390,11 +390,7 @@ def _searched(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
             of_glass.setdefault(float(params[model.index("n_glass")]), []).append(fit)
     ranked = []
     for fits in of_glass.values():
-        distinct = []  # candidates that reached the same fit count once
-        for f in sorted(fits, key=lambda f: f[3]):
-            if not any(abs(f[3] - d[3]) <= SAME_COST_FRACTION * d[3] for d in distinct):
-                distinct.append(f)
-        ranked.extend(distinct[:RANKED_PER_GLASS])
+        ranked.extend(_distinct(fits, lambda f: f[3])[:RANKED_PER_GLASS])
     _debug(f"ray fits: {[(round(f[0].n_glass, 2), round(f[3], 2)) for f in ranked]}")
     views = _subset(obs, _rank_rows(obs, PIXEL_CORNERS_PER_HALF))
     cost, fit = _halved(ctx, views, ranked, rvecs, tvecs)
@@ -408,6 +404,16 @@ def _searched(ctx: StartContext, pinhole: PinholeModel, rvecs, tvecs):
     freed_cost = _pixel_cost(freed, views)
     _debug(f"glass freed: n {freed.model.n_glass:.3f} cost {freed_cost:.3f}")
     return freed if freed_cost <= cost else fit
+
+
+def _distinct(items, cost) -> list:
+    """``items`` in order of ``cost(item)``, those that reached the same cost as a cheaper
+    one (within :data:`SAME_COST_FRACTION`, i.e. the same fit) left out."""
+    out = []
+    for item in sorted(items, key=cost):
+        if not any(abs(cost(item) - cost(d)) <= SAME_COST_FRACTION * cost(d) for d in out):
+            out.append(item)
+    return out
 
 
 def _halved(ctx: StartContext, views: Observations, ranked, rvecs, tvecs):
@@ -440,10 +446,7 @@ def _halved(ctx: StartContext, views: Observations, ranked, rvecs, tvecs):
         _debug(f"halving, budget {budget}: {[(round(c, 3), f.nfev) for c, f in scored]}")
         if last:
             return scored[0]
-        distinct = []
-        for c, f in scored:
-            if not any(abs(c - d[0]) <= SAME_COST_FRACTION * d[0] for d in distinct):
-                distinct.append((c, f))
+        distinct = _distinct(scored, lambda cf: cf[0])
         keep = distinct[: max(1, len(distinct) // 2)]
         alive = [(f.model, f.rvecs, f.tvecs, f.state) for _, f in keep]
         budget *= 2
