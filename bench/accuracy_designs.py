@@ -53,6 +53,8 @@ EXE = str(Path(sys.executable).with_name("endomeasure"))
 DEFAULT_DESIGNS = "1-40"
 FIT_RATIO = 1.25
 MIN_ZONE_N = 30
+LIMIT_PCT = {"segment": 0.3, "area": 0.6}  # |zone bias| / true value, % (issue 15)
+PLANE_RATIO_LIMIT = 0.3  # point-to-plane |zone mean| / zone std (issue 15)
 TARGETS = {
     "fit": Target("designs whose raytrace fit reaches 1.25x the detection floor", ">=", 38, "",
                   "issue 15"),
@@ -243,9 +245,9 @@ def _passes_board(board: dict) -> bool:
     shown nothing and does not pass."""
     return (
         board["zones"] > 0
-        and board["segment_pct"] <= 0.3
-        and board["area_pct"] <= 0.6
-        and board["plane_ratio"] <= 0.3
+        and board["segment_pct"] <= LIMIT_PCT["segment"]
+        and board["area_pct"] <= LIMIT_PCT["area"]
+        and board["plane_ratio"] <= PLANE_RATIO_LIMIT
         and board.get("measured_fraction", 1.0) >= 0.99
     )
 
@@ -270,7 +272,7 @@ def _noise_explained(converged: list[dict]) -> tuple[int, int]:
     explained = total = 0
     for r in converged:
         for z in r["board"].get("noise", []):
-            limit = 0.6 if z["kind"] == "area" else 0.3
+            limit = LIMIT_PCT["area" if z["kind"] == "area" else "segment"]
             if abs(z["raw_pct"]) <= limit:
                 continue
             total += 1
