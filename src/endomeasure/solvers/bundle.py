@@ -48,8 +48,9 @@ __all__ = [
     "refine",
     "all_residuals",
     "fit_with_outliers",
-    "scaled_normal_matrix",
+    "gauss_newton_step",
     "OUTLIER_FLOOR_PX",
+    "NUMERICAL_FLOOR_PX",
 ]
 
 OUTLIER_FLOOR_PX = 0.1
@@ -83,17 +84,6 @@ class BundleProblem:
         )
         self.n = self.F + 6 * images.size
         self.m = 2 * self.rows.size
-        # sparsity pattern: each residual pair touches the F parameters and its pose's 6
-        M = self.rows.size
-        cols = np.concatenate(
-            [
-                np.broadcast_to(np.arange(self.F), (M, self.F)),
-                self.F + 6 * self.pose_of_obs[:, None] + np.arange(6)[None, :],
-            ],
-            axis=1,
-        )
-        self._cols = np.repeat(cols, 2, axis=0).reshape(-1)
-        self._indptr = np.arange(0, 2 * M * (self.F + 6) + 1, self.F + 6)
         self._last = None  # (x, model, rvecs, points) of the last valid residuals
 
     def pack(self, model, rvecs, tvecs) -> np.ndarray:
@@ -141,13 +131,33 @@ class BundleProblem:
         dP_drv = -skew(RX) @ rotation_jacobian(rv)[self.pose_of_obs]
         return dq_dparams, np.concatenate([dq_dp @ dP_drv, dq_dp], axis=-1)
 
-    def jacobian(self, x: np.ndarray):
-        """Sparse residual Jacobian, shape (m, n): each row pair has F + 6 entries."""
-        import scipy.sparse as sp
+    def normal_equations(self, x: np.ndarray, r: np.ndarray, active: np.ndarray):
+        """``(J^T J, J^T r)`` over the ``active`` residual components (dense, n x n and
+        n), assembled from the per-observation blocks: the parameters' block, each
+        pose's 6 x 6 block and their cross terms, without the sparse Jacobian."""
+        A, B = self.jacobian_blocks(x)
+        w = active.reshape(-1, 2, 1)
+        A, B, rw = np.where(w, A, 0.0), np.where(w, B, 0.0), np.where(active, r, 0.0)
+        F, M = self.F, self.rows.size
+        At, Bt = A.transpose(0, 2, 1), B.transpose(0, 2, 1)
+        cross = self._per_pose((At @ B).reshape(M, 6 * F)).reshape(self.images.size, F, 6)
+        poses = self._per_pose((Bt @ B).reshape(M, 36)).reshape(-1, 6, 6)
+        N = np.zeros((self.n, self.n))
+        A2 = A.reshape(2 * M, F)
+        N[:F, :F] = A2.T @ A2
+        N[:F, F:] = cross.transpose(1, 0, 2).reshape(F, self.n - F)
+        N[F:, :F] = N[:F, F:].T
+        for k, block in enumerate(poses):
+            N[F + 6 * k : F + 6 * k + 6, F + 6 * k : F + 6 * k + 6] = block
+        g_poses = self._per_pose((Bt @ rw.reshape(M, 2, 1)).reshape(M, 6))
+        g = np.concatenate([A2.T @ rw, g_poses.reshape(-1)])
+        return N, g
 
-        dq_dparams, dq_dpose = self.jacobian_blocks(x)
-        blocks = np.concatenate([dq_dparams, dq_dpose], axis=-1)  # (M, 2, F + 6)
-        return sp.csr_matrix((blocks.reshape(-1), self._cols, self._indptr), shape=(self.m, self.n))
+    def _per_pose(self, values: np.ndarray) -> np.ndarray:
+        """Sums of per-observation rows ``values`` (M, k) over each pose's observations."""
+        order = np.argsort(self.pose_of_obs, kind="stable")
+        starts = np.searchsorted(self.pose_of_obs[order], np.arange(self.images.size))
+        return np.add.reduceat(values[order], starts, axis=0)
 
     def blocks(self, x: np.ndarray):
         """Row-wise parameter and pose Jacobians for the covariance: (m, F), (m, 6), pose of row."""
@@ -159,75 +169,124 @@ class BundleProblem:
         )
 
 
-LSMR_OPTIONS = {"atol": 1e-12, "btol": 1e-12, "maxiter": 200}
-"""Tolerances of the inner sparse solver of each trust-region step: tight, because
-inexact steps stall the final convergence (scipy's defaults leave ~1e-6 relative)."""
-RESTART_MIN_GAIN = 1e-6
-"""Relative cost decrease for which a fit stopped by ``xtol`` is started again."""
-_PRECONDITION_RIDGE = 1e-10  # relative ridge keeping the start's normal matrix factorable
+STEP_TOL_SIGMAS = 1e-3
+"""A fit has converged when the Gauss-Newton step still to take moves the unknowns by
+less than this many of their own standard deviations (in the Mahalanobis norm of the
+normal matrix, the noise estimated from the current cost): any further change is
+invisible against the calibration's uncertainty."""
+NUMERICAL_FLOOR_PX = 1e-6
+"""The precision the models' projections promise (SPEC 4): residuals below it are
+round-off, which no parameter explains, and a step whose predicted gain is below it
+over every unknown is not worth taking."""
+MAX_DAMPING = 1e12
+"""Damping (the step is ``1 / (1 + damping)`` of the Gauss-Newton step) beyond which
+the fit has stalled: no step along it lowers the cost (it loses corners at once, or
+the cost is at its round-off)."""
+EDGE_FRACTION = 0.01
+"""The largest share of a fit's corners that one step may leave out at the model's
+domain edge (:func:`_least_squares`); a step that loses more is a wild one."""
+_RIDGE = 1e-10  # relative ridge keeping a singular normal matrix factorable
 
 
-def scaled_normal_matrix(J) -> tuple[np.ndarray, np.ndarray]:
-    """The normal matrix ``J^T J`` (dense) of a sparse Jacobian, scaled to unit diagonal:
-    ``(D J^T J D, d)`` with ``D = diag(d)``, ``d = diag(J^T J)^-1/2`` (1 where a column
-    is zero), so that its solves are not ruled by the unknowns' units."""
-    N = (J.T @ J).toarray()
-    diag = np.diag(N).copy()
+class _Solution(NamedTuple):
+    x: np.ndarray
+    cost: float
+    status: int  # -1 nothing to fit, 0 evaluations used up, 2 converged, 3 stalled (scipy's codes)
+    message: str
+    nfev: int
+
+
+def gauss_newton_step(N: np.ndarray, g: np.ndarray) -> np.ndarray | None:
+    """The Gauss-Newton step ``-N^-1 g`` of the normal matrix ``N`` and gradient ``g``,
+    solved by Cholesky on ``N`` scaled to unit diagonal (so that the unknowns' units do
+    not rule it) plus a relative ridge; None where even that cannot be factored."""
+    from scipy.linalg import LinAlgError, cho_factor, cho_solve
+
+    diag = np.diag(N)
     d = 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))
-    return N * d[:, None] * d[None, :], d
+    Nn = N * d[:, None] * d[None, :]
+    Nn[np.diag_indices_from(Nn)] += _RIDGE
+    try:
+        factor = cho_factor(Nn, lower=True, check_finite=False)
+    except (LinAlgError, ValueError):
+        return None
+    return -d * cho_solve(factor, d * g, check_finite=False)
 
 
-def _least_squares(problem: BundleProblem, x0: np.ndarray, max_nfev: int):
-    """``scipy.optimize.least_squares`` (trust-region reflective, LSMR steps), whitened.
+def _least_squares(problem: BundleProblem, x0: np.ndarray, max_nfev: int) -> _Solution:
+    """Gauss-Newton on the exact normal equations, its steps shortened by a damping in
+    their own metric (Nielsen's update).
 
-    The unknowns are made unitless and decorrelated at the start: with the start's
-    normal matrix ``N0 = J0^T J0`` (small and dense: F + 6 I unknowns), column-scaled
-    by ``D = diag(N0)^-1/2`` and factored ``D N0 D = L L^T``, the solver works on
-    ``z`` with ``x = x0 + D L^-T z``. Near the start the Jacobian in ``z`` is
-    orthonormal, so each LSMR step solve takes a handful of iterations instead of
-    hundreds (distortion terms are strongly correlated).
+    The unknowns are few (F + 6 per image, a few hundred), so every step solves the
+    normal equations ``N = J^T J`` exactly by Cholesky: a few milliseconds, where an
+    iterative solve of the sparse system (LSMR) took most of a calibration's time and
+    left each step inexact.
 
-    Why not MINPACK's Levenberg-Marquardt: a trial step that loses a few corners (a ray
-    at the edge of total internal reflection) makes it shrink its step until ``xtol``
-    stops it far from the minimum; the trust-region solver recovers.
+    The step taken is the Gauss-Newton step ``-N^-1 g`` divided by ``1 + damping``: the
+    Levenberg-Marquardt step with the damping matrix ``N`` itself. It keeps the Gauss-
+    Newton direction, along the valley of strongly correlated unknowns (the glass index
+    against the face tilts, a pinhole's radial terms), where a damping of the identity
+    or of Marquardt's diagonal turns the step across the valley and crawls. A trial step
+    that raises the cost is rejected and the damping raised; one that lowers it is taken
+    and the damping lowered by how well the quadratic model predicted the gain. Stops
+    when converged (:data:`STEP_TOL_SIGMAS`), stalled (no shortened step lowers the
+    cost: :data:`MAX_DAMPING`) or after ``max_nfev`` residual evaluations.
+
+    A corner that a trial step pushes out of the model's domain costs
+    :data:`FAILED_RESIDUAL_PX`, so wild steps are rejected. But a corner at the domain's
+    edge (at total internal reflection, on a face's rim) fails under any step however
+    short, and would stall the fit where it stands: when a rejected step's only fault is
+    a few such corners (at most :data:`EDGE_FRACTION` of the fit's corners) and it
+    lowers the cost of the others, they are left out of the rest of this fit and the
+    step is taken. The outlier rule then judges them with every other corner.
     """
-    from scipy.linalg import cholesky, solve_triangular
-    from scipy.optimize import least_squares
-    from scipy.sparse.linalg import LinearOperator
+    x, r = x0, problem.residuals(x0)
+    active = ~_failed(r)  # per residual component
+    nfev, damping, growth = 1, 1e-3, 2.0
+    if not active.any():
+        return _Solution(x, np.inf, -1, "no corner can be projected from the start", nfev)
+    dof = max(problem.m - problem.n, 1)
+    while True:
+        rw = np.where(active, r, 0.0)
+        cost = 0.5 * float(rw @ rw)
+        N, g = problem.normal_equations(x, r, active)
+        newton = gauss_newton_step(N, g)
+        if newton is None:
+            return _Solution(x, cost, 3, "stalled: the normal matrix is not finite", nfev)
+        left = -0.5 * float(g @ newton)  # the gain the full step predicts
+        # converged: that gain against the noise the cost implies
+        tolerance = max(STEP_TOL_SIGMAS**2 * cost / dof, 0.5 * problem.n * NUMERICAL_FLOOR_PX**2)
+        if left <= tolerance:
+            return _Solution(x, cost, 2, "converged: the step left is below "
+                             f"{STEP_TOL_SIGMAS:g} standard deviations", nfev)  # fmt: skip
+        while True:
+            t = 1.0 / (1.0 + damping)
+            predicted = left * t * (2.0 - t)
+            if damping > MAX_DAMPING or predicted <= tolerance:
+                return _Solution(x, cost, 3, "stalled: no step lowers the cost", nfev)
+            if nfev >= max_nfev:
+                return _Solution(x, cost, 0, "the evaluations allowed were used up", nfev)
+            x_new = x + t * newton
+            r_new = problem.residuals(x_new)
+            nfev += 1
+            keep = active & ~_failed(r_new)
+            lost = int(np.sum(active & ~keep)) // 2
+            if lost and lost > max(1, int(EDGE_FRACTION * active.sum() / 2)):
+                keep = active  # a wild step: it pays for every corner it loses
+            kept_new = np.where(keep, r_new, 0.0)
+            kept_old = np.where(keep, r, 0.0)
+            rho = 0.5 * float(kept_old @ kept_old - kept_new @ kept_new) / predicted
+            if rho > 0:
+                x, r, active = x_new, r_new, keep
+                damping *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                growth = 2.0
+                break
+            damping, growth = damping * growth, growth * 2.0
 
-    Nn, d = scaled_normal_matrix(problem.jacobian(x0))
-    Nn[np.diag_indices_from(Nn)] += _PRECONDITION_RIDGE
-    L = cholesky(Nn, lower=True)
-    P = d[:, None] * solve_triangular(L, np.eye(L.shape[0]), lower=True, trans="T")
 
-    def fun(z):
-        return problem.residuals(x0 + P @ z)
-
-    # a unit step in z changes the linearised residuals by 1 px (RSS): let the first
-    # trust region reach the size of the residual to be removed
-    radius = max(1.0, float(np.linalg.norm(problem.residuals(x0))))
-
-    def jac(z):
-        J = problem.jacobian(x0 + P @ z)
-        return LinearOperator(
-            J.shape, matvec=lambda v: J @ (P @ v), rmatvec=lambda u: P.T @ (J.T @ u)
-        )
-
-    ls = least_squares(
-        fun,
-        np.zeros_like(x0),
-        jac=jac,
-        method="trf",
-        x_scale=radius,
-        tr_solver="lsmr",
-        tr_options=LSMR_OPTIONS,
-        ftol=1e-12,
-        xtol=1e-12,
-        gtol=1e-10,
-        max_nfev=max_nfev,
-    )
-    ls.x = x0 + P @ ls.x
-    return ls
+def _failed(r: np.ndarray) -> np.ndarray:
+    """Residual components of corners whose projection failed (see :meth:`residuals`)."""
+    return np.abs(r) >= FAILED_RESIDUAL_PX
 
 
 def refine(
@@ -245,18 +304,6 @@ def refine(
     """
     problem = BundleProblem(model, obs, use, state)
     ls = _least_squares(problem, problem.pack(model, rvecs, tvecs), max_nfev)
-    nfev = ls.nfev
-    # xtol: the trust region shrank to nothing. In a long, narrow valley (the glass index
-    # against the face tilts) that can happen far from the minimum, because the start's
-    # whitening no longer fits the valley: start again, whitened where it stopped, while
-    # that still lowers the cost
-    while ls.status == 3 and nfev < max_nfev:
-        again = _least_squares(problem, ls.x, max_nfev - nfev)
-        nfev += again.nfev
-        if not again.cost < ls.cost * (1.0 - RESTART_MIN_GAIN):
-            break
-        ls = again
-    ls.nfev = nfev
     try:
         fitted, rv, tv = problem.unpack(ls.x)
     except ValueError as exc:

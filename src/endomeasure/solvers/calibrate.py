@@ -30,12 +30,13 @@ from endomeasure.geometry.rotations import rotation_matrix
 from endomeasure.models import CameraModel, ModelConfig, model_class, model_start
 from endomeasure.models.start import Observations, Start, StartContext
 from endomeasure.solvers.bundle import (
+    NUMERICAL_FLOOR_PX,
     OUTLIER_FLOOR_PX,
     BundleProblem,
     all_residuals,
     fit_with_outliers,
+    gauss_newton_step,
     refine,
-    scaled_normal_matrix,
 )
 from endomeasure.solvers.covariance import marginal_covariance
 from endomeasure.solvers.verdict import MIN_CORRELATION_EIGENVALUE, Verdict, judge
@@ -72,9 +73,6 @@ one distance: the prism's non-central geometry needs a range of depths."""
 MIN_PROJECTED_FRACTION = 0.5
 """A fit that seeds another one must project at least this share of the corners (the
 rest, e.g. corners a pinhole pair places across the split, the next fit judges)."""
-NUMERICAL_FLOOR_PX = 1e-6
-"""The precision the models' projections promise (SPEC 4): residuals below it are
-round-off, which no parameter explains."""
 CONVERGED_RMS_LIMIT_PX = 20.0
 """A fit whose RMS stays above this has not found the board geometry (a wrong local
 minimum or corrupted detections), whatever the optimiser's status says."""
@@ -636,8 +634,9 @@ def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -
     term that folds the lens back or puts a pole in the field loses corners, and must
     pay for them. A group that leaves a combination of parameters undetermined by the
     data (a correlation eigenvalue below the verdict's limit) is not kept. A second pass
-    retries the groups the first rejected when it kept one (a radial term can make a
-    pupil term worthwhile). A group whose gain predicted by one linearised step
+    retries the groups the first rejected before it kept a later one (a radial term can
+    make a pupil term worthwhile); a group tried from the fit that still stands is not
+    tried again. A group whose gain predicted by one linearised step
     (:func:`_linearised_gain`) falls well short of the threshold is not refined at all.
     Parameters the user gave a value for are not freed. After a change the outlier rule
     runs again.
@@ -655,9 +654,14 @@ def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -
     def threshold(group):  # the criterion's price of the group's parameters
         return len(group) * np.log(m)
 
+    tried_from: dict[tuple[str, ...], Any] = {}  # the fit each group was last tried from
     for _ in range(2):
         rejected = []
         for group in pending:
+            if tried_from.get(group) is current:
+                rejected.append(group)  # nothing was freed since: the same trial again
+                continue
+            tried_from[group] = current
             trial_model = current.model.with_config(fixed=current.model.config.fixed - set(group))
             predicted = _linearised_gain(trial_model, obs, current, use, cost, m)
             if predicted <= SCREEN_FRACTION * threshold(group):
@@ -709,18 +713,16 @@ def _linearised_gain(trial_model, obs: Observations, current, use: np.ndarray, c
     """The information criterion's gain ``m ln(C_0 / C_1)`` predicted for freeing a group
     by one Gauss-Newton step from the current fit (the score test): ``C_1 = C_0 - g^T
     H^-1 g`` with the gradient ``g`` and normal matrix ``H`` of the trial problem (the
-    group freed, every pose) on the inlier corners. Infinite where ``H`` is singular,
-    so that the refinement decides."""
+    group freed, every pose) on the inlier corners. Infinite where ``H`` cannot be
+    factored, so that the refinement decides."""
     problem = BundleProblem(trial_model, obs, use, current.state)
     x = problem.pack(trial_model, current.rvecs, current.tvecs)
     r = problem.residuals(x)
-    J = problem.jacobian(x)
-    g = J.T @ r
-    H, d = scaled_normal_matrix(J)
-    try:
-        decrease = float((g * d) @ np.linalg.solve(H, g * d))
-    except np.linalg.LinAlgError:
+    H, g = problem.normal_equations(x, r, np.ones(r.size, dtype=bool))
+    step = gauss_newton_step(H, g)
+    if step is None:
         return np.inf
+    decrease = -float(g @ step)
     if not (np.isfinite(decrease) and decrease < cost):
         return np.inf
     return float(m * np.log(cost / (cost - decrease)))
