@@ -191,7 +191,7 @@ _RIDGE = 1e-10  # relative ridge keeping a singular normal matrix factorable
 class _Solution(NamedTuple):
     x: np.ndarray
     cost: float
-    status: int  # -1 nothing to fit, 0 evaluations used up, 2 converged, 3 stalled (scipy's codes)
+    status: int  # -1 cannot go on, 0 evaluations used up, 2 converged, 3 stalled (as scipy)
     message: str
     nfev: int
 
@@ -252,7 +252,7 @@ def _least_squares(problem: BundleProblem, x0: np.ndarray, max_nfev: int) -> _So
         N, g = problem.normal_equations(x, r, active)
         newton = gauss_newton_step(N, g)
         if newton is None:
-            return _Solution(x, cost, 3, "stalled: the normal matrix is not finite", nfev)
+            return _Solution(x, cost, -1, "the normal matrix is not finite", nfev)
         left = -0.5 * float(g @ newton)  # the gain the full step predicts
         # converged: that gain against the noise the cost implies
         tolerance = max(STEP_TOL_SIGMAS**2 * cost / dof, 0.5 * problem.n * NUMERICAL_FLOOR_PX**2)

@@ -79,14 +79,16 @@ MIN_NEIGHBOUR_PAIRS = 30
 """Runs of three neighbouring corners needed for the scatter floor."""
 
 
-def scatter_floor(board_points, image, half, residuals) -> float:
+def scatter_floor(
+    board_points, image, half, residuals, min_runs: int = MIN_NEIGHBOUR_PAIRS
+) -> float:
     """RMS residual length left by errors independent from corner to corner, px.
 
     ``sqrt(mean |r_a - 2 r_b + r_c|^2 / 6)`` over runs of three corners one square apart
     along a board row or column, in the same half of the same image: a misfit that is
     smooth over the board (constant or linear across three corners) cancels in the second
     difference, independent errors of variance ``s^2`` give ``6 s^2`` (NaN with fewer
-    than :data:`MIN_NEIGHBOUR_PAIRS` runs).
+    than ``min_runs`` runs).
 
     Parameters
     ----------
@@ -114,7 +116,7 @@ def scatter_floor(board_points, image, half, residuals) -> float:
             second = r[a[ok]] - 2 * r[b[ok]] + r[c[ok]]
             total += float(np.sum(second * second))
             runs += int(ok.sum())
-    return float(np.sqrt(total / (6 * runs))) if runs >= MIN_NEIGHBOUR_PAIRS else float("nan")
+    return float(np.sqrt(total / (6 * runs))) if runs >= min_runs else float("nan")
 
 
 @dataclasses.dataclass(frozen=True)
