@@ -146,8 +146,8 @@ def _board_figures(session: Path, folder: Path) -> dict:
     """The raytrace board test: worst zone figures (n >= 30) on the detected corners and
     the fraction of the test corners measured; the same on the test set's true pixels
     (the calibration's own error, no image noise); and per zone the mean error the image
-    noise alone predicts (``predict-error --board-test --no-calibration`` at the model's
-    residual sigma: the unscented transform at the ideal board's pixels)."""
+    noise alone predicts (``predict-error --board-test --no-calibration`` at its default
+    noise: the unscented transform at the ideal board's pixels)."""
     from endomeasure.pipeline.measure import board_test
     from endomeasure.pipeline.predict import NoiseAssumptions, predict_board_test
 

@@ -165,8 +165,9 @@ SigmaOption = Annotated[
     typer.Option(
         "--sigma",
         metavar="PX|U,V",
-        help="Image noise per coordinate, px, or separately for u and v "
-        "(default: from the calibration residuals).",
+        help="Image noise per coordinate, px, or separately for u and v (default: in a board "
+        "test, each test image half's own, from the scatter of its neighbouring corners; "
+        "otherwise from the calibration residuals).",
     ),
 ]
 

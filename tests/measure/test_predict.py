@@ -381,3 +381,28 @@ def test_per_point_noise_with_equal_values_is_the_plain_sigma(raytrace_model):
     with pytest.raises(BadInputError, match="for 3 points"):
         predict_measurement_error(raytrace_model, "length", ql, qr,
                                   noise=ImageNoise.per_point(np.zeros((3, 2)), "test"))  # fmt: skip
+
+
+def test_per_measurement_noise_is_each_measurement_predicted_alone(raytrace_model):
+    # oracle: a batch whose rows carry their own (u_L, v_L, u_R, v_R) noise predicts each
+    # row as that row alone with its noise would, bit for bit
+    pts = np.array([[[-2.0, 0.0, 15.0], [2.0, 1.0, 16.0]], [[-1.0, -1.0, 20.0], [1.5, 0.0, 21.0]]])
+    ql = raytrace_model.project(pts, "left").pixels
+    qr = raytrace_model.project(pts, "right").pixels
+    std = np.array([[[0.01, 0.02, 0.03, 0.04]] * 2, [[0.05, 0.01, 0.02, 0.02]] * 2])
+    batch = predict_measurement_error(
+        raytrace_model, "length", ql, qr, noise=ImageNoise.per_point(std, "test")
+    )
+    for m in range(2):
+        alone = predict_measurement_error(
+            raytrace_model, "length", ql[m], qr[m], noise=ImageNoise.per_point(std[m], "test")
+        )
+        np.testing.assert_allclose(batch.std[m], alone.std[0], rtol=1e-12)
+        np.testing.assert_allclose(batch.bias[m], alone.bias[0], rtol=1e-9, atol=1e-15)
+    # u_L, v_L, u_R, v_R of 0.05 everywhere is the plain sigma
+    plain = predict_measurement_error(raytrace_model, "length", ql, qr, noise=ImageNoise(0.05))
+    same = ImageNoise.per_point(np.full((2, 2, 4), 0.05), "test")
+    np.testing.assert_allclose(
+        predict_measurement_error(raytrace_model, "length", ql, qr, noise=same).std,
+        plain.std, rtol=1e-12,
+    )  # fmt: skip

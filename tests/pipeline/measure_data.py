@@ -55,6 +55,9 @@ def model_record(name: str, model) -> ModelRecord:
 def build_session(path, rng=None, noise_px=0.0, models=("raytrace",), offsets=((0.0, 0.0),)):
     """A session with the given models and test images of the board (see module doc).
 
+    ``noise_px``: the noise's sigma (px; a pair for u and v), or a function of the
+    image's index and the half (0 left, 1 right) that returns it.
+
     Returns ``(path, truth)`` with ``truth[image] = points (N, 3)`` (in the frame of the
     first model).
     """
@@ -77,8 +80,9 @@ def build_session(path, rng=None, noise_px=0.0, models=("raytrace",), offsets=((
                 assert np.all(ql.status == Status.OK) and np.all(qr.status == Status.OK)
                 records.append(ImageRecord(name, blank, f"{name}.png", "0" * 64, "test"))
                 ids = np.arange(p.shape[0], dtype=np.int32)
-                for half, q in ((Half.LEFT, ql.pixels), (Half.RIGHT, qr.pixels)):
-                    noisy = q + (rng.normal(0.0, noise_px, q.shape) if noise_px else 0.0)
+                for j, (half, q) in enumerate(((Half.LEFT, ql.pixels), (Half.RIGHT, qr.pixels))):
+                    sigma = noise_px(len(records) - 2, j) if callable(noise_px) else noise_px
+                    noisy = q + (rng.normal(0.0, sigma, q.shape) if np.any(sigma) else 0.0)
                     dets.append(Detection(name, BOARD, half, ids, noisy, 1.0, ""))
                 truth[name] = p
         w.write_images(records)

@@ -119,6 +119,42 @@ def test_separate_u_and_v_noise_is_predicted_per_axis(tmp_path):
         assert r.exit_code == 2 and len(r.stderr.strip().splitlines()) == 1, (bad, r.output)
 
 
+def _image_sigma(index: int, half: int) -> tuple[float, float]:
+    """Noise (u, v) drawn into test image ``index``'s ``half``: 0.01-0.03 px over the
+    images, smaller in the right half and in v, so that no one sigma fits them all."""
+    u = 0.01 * (1 + index % 3) * (1.0, 0.7)[half]
+    return (u, 0.8 * u)
+
+
+def test_default_board_noise_is_measured_on_each_test_image(tmp_path):
+    from endomeasure.io.records import BOARD_TEST_RECORD, board_test_fields
+    from endomeasure.measure.board_runs import ModelBoardTest, test_image_noise
+    from endomeasure.pipeline.predict import TEST_IMAGE_NOISE, _board_grids
+
+    session = build_session(
+        tmp_path / "per_image.h5", np.random.default_rng(5), noise_px=_image_sigma,
+        offsets=((0.0, 0.0), (0.0, 0.5), (0.0, -0.5)),
+    )[0]  # fmt: skip
+    result = _invoke(session, "--board-test", "--no-calibration", "--json")
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.stdout)
+    assert doc["sigma_source"] == TEST_IMAGE_NOISE
+    # the stored residual sigma (0.05 px, a misfit's worth) would over-predict 2-5x
+    for kind in ("x-segment", "y-segment", "point-plane", "area"):
+        assert _pooled_ratio(doc["zones"], kind) == pytest.approx(1.0, abs=STD_RATIO_TOL), kind
+    assert doc["within_band"] >= MIN_WITHIN_BAND
+    # each half's own figure against the noise drawn into it (35 corners: ~12 % scatter)
+    with open_session(session) as s:
+        bt = ModelBoardTest.from_fields(board_test_fields(s.record(BOARD_TEST_RECORD, "raytrace")))
+    measured = test_image_noise(bt, make_raytrace_model(), _board_grids(bt))
+    index = {name: k for k, name in enumerate(sorted(bt.images))}
+    drawn = np.array([[*_image_sigma(index[n], 0), *_image_sigma(index[n], 1)] for n in bt.images])
+    ratio = measured / drawn
+    assert np.median(ratio) == pytest.approx(1.0, abs=0.08)
+    assert np.percentile(ratio, 90) / np.percentile(ratio, 10) < 1.6
+    assert np.corrcoef(np.log(measured.ravel()), np.log(drawn.ravel()))[0, 1] > 0.8
+
+
 def test_correlation_between_halves_lowers_the_board_prediction(noisy_session):
     def mean_std(rho):
         r = _invoke(

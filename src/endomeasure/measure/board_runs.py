@@ -40,7 +40,7 @@ from endomeasure.measure.board_test import (
 )
 
 if TYPE_CHECKING:
-    from endomeasure.measure.predict import ImageNoise
+    from endomeasure.measure.predict import ImageNoise, ImageNoiseByImage
 
 __all__ = [
     "BAND_SIGMAS",
@@ -53,6 +53,7 @@ __all__ = [
     "prediction_zones",
     "rigid_fit",
     "run_board_test",
+    "test_image_noise",
     "within_band",
 ]
 
@@ -265,11 +266,60 @@ def ideal_board_pixels(model, grid: np.ndarray, xyz: np.ndarray, ql, qr):
     return out[0], out[1]
 
 
+def _grid_of(grids: Mapping[str, np.ndarray], bt: ModelBoardTest, k: int, ids) -> np.ndarray:
+    """Board-frame coordinates (N, 3), mm, of corners ``ids`` of test image ``k``."""
+    return np.asarray(grids[bt.board[k]])[np.asarray(ids, dtype=np.int64)]
+
+
+MIN_IMAGE_RUNS = 10
+"""Runs of three neighbouring corners an image half needs for its own noise figure
+(:func:`test_image_noise`): from fewer, the figure's own scatter (about 1 / sqrt(2 runs)
+relative, some 20 % at 10) would be a noise source of its own."""
+
+
+def test_image_noise(bt: ModelBoardTest, model, grids: Mapping[str, np.ndarray]) -> np.ndarray:
+    """The detection noise of each test image half, measured on the image itself.
+
+    The detected corners minus the ideal board at its estimated pose
+    (:func:`ideal_board_pixels`) hold the detection noise, the pose's error and the
+    model's misfit; the last two are smooth over the board and cancel in the second
+    differences of neighbouring corners
+    (:func:`~endomeasure.solvers.verdict.scatter_floor`), which leave the noise that is
+    independent from corner to corner. Halves with fewer than :data:`MIN_IMAGE_RUNS`
+    runs take the median of the others (NaN when no half has enough).
+
+    Returns
+    -------
+    ndarray, shape (I, 4), px
+        Standard deviation of ``u_L, v_L, u_R, v_R`` in test image i (u and v apart: the
+        depth follows u alone, and a prism's anamorphic magnification or an interlaced
+        sensor need not treat them alike).
+    """
+    from endomeasure.solvers.verdict import scatter_floor
+
+    out = np.full((len(bt.images), 4), np.nan)
+    for k in range(len(bt.images)):
+        ids, ql, qr, xyz = bt.image_pixels(k)
+        grid = _grid_of(grids, bt, k, ids)
+        il, ir = ideal_board_pixels(model, grid, xyz, ql, qr)
+        ok = np.all(np.isfinite(xyz), axis=1)  # the others keep no ideal pixel
+        zeros = np.zeros(int(ok.sum()), dtype=np.int64)
+        for half, residual in enumerate((ql - il, qr - ir)):
+            for c in (0, 1):  # one coordinate's residuals: its own RMS
+                out[k, 2 * half + c] = scatter_floor(
+                    grid[ok], zeros, zeros, residual[ok][:, [c]], MIN_IMAGE_RUNS
+                )
+    finite = np.isfinite(out)
+    if finite.any():
+        out[~finite] = np.median(out[finite])
+    return out
+
+
 def board_predictions(
     bt: ModelBoardTest,
     model,
     grids: Mapping[str, np.ndarray],
-    noise: ImageNoise,
+    noise: ImageNoise | ImageNoiseByImage,
     *,
     param_cov: np.ndarray | None = None,
     at: str = "board",
@@ -280,7 +330,9 @@ def board_predictions(
     ``grids``: each board's corner coordinates by corner id (N, 3), mm, board frame (the
     ``object_points`` of its parsed spec), for ``at='board'``.
 
-    ``noise``, ``param_cov`` and ``options`` (``method``, ...): as in
+    ``noise``: an :class:`~endomeasure.measure.predict.ImageNoise`, or an
+    :class:`~endomeasure.measure.predict.ImageNoiseByImage` over ``bt.images`` (e.g.
+    :func:`test_image_noise`). ``param_cov`` and ``options`` (``method``, ...): as in
     :func:`~endomeasure.measure.predict.predict_measurement_error`.
 
     ``at='board'`` predicts at the pixels of the ideal board at its estimated pose
@@ -302,8 +354,7 @@ def board_predictions(
     for k in range(len(bt.images)):
         ids, ql, qr, xyz = bt.image_pixels(k)
         if at == "board":
-            grid = np.asarray(grids[bt.board[k]])[np.asarray(ids, dtype=np.int64)]
-            ql, qr = ideal_board_pixels(model, grid, xyz, ql, qr)
+            ql, qr = ideal_board_pixels(model, _grid_of(grids, bt, k, ids), xyz, ql, qr)
         images.append(BoardImage(ids, xyz, ql, qr))
     out = PredictedErrors.empty(t.kind.shape[0])
     for kind, measure_kind in BOARD_KINDS.items():
@@ -312,8 +363,9 @@ def board_predictions(
             continue
         ql, qr = stencil_pixels(t, images, kind)
         pred = predict_measurement_error(
-            model, measure_kind, ql, qr, noise=noise, param_cov=param_cov, **options
-        )
+            model, measure_kind, ql, qr, noise=noise.of_rows(t.image[rows]),
+            param_cov=param_cov, **options,
+        )  # fmt: skip
         out.fill(rows, pred)
     return out
 

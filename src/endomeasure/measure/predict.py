@@ -43,6 +43,7 @@ __all__ = [
     "Z95",
     "ErrorMap",
     "ImageNoise",
+    "ImageNoiseByImage",
     "PredictedError",
     "accuracy_index",
     "image_noise",
@@ -76,22 +77,28 @@ class ImageNoise:
     rho_images, rho_points : float
         Correlation of one point's errors in the two halves, and of different points'
         (:func:`~endomeasure.solvers.uncertainty.pixel_covariance`).
-    pixel_std : tuple of (float, float) per point, px, or None
+    pixel_std : ndarray, shape (n, 2 or 4) or (M, n, 2 or 4), px, or None
         Instead of ``sigma`` and the correlations: an independent standard deviation per
-        point for its left and its right pixel (both coordinates), e.g. an exact clicked
-        pixel (0) and an automatic match at its own precision.
+        point for its left and its right pixel (both coordinates alike), or for each of
+        ``u_L, v_L, u_R, v_R``, e.g. an exact clicked pixel (0) and an automatic match at
+        its own precision; with a leading M, one row per measurement of a batch (each
+        point at the noise of the image it lies in). Read-only.
     """
 
     sigma: float | tuple[float, float]
     source: str = "given"
     rho_images: float = 0.0
     rho_points: float = 0.0
-    pixel_std: tuple[tuple[float, float], ...] | None = None
+    pixel_std: np.ndarray | None = dataclasses.field(default=None, compare=False)
 
     def __post_init__(self):
-        std = None if self.pixel_std is None else np.asarray(self.pixel_std, dtype=np.float64)
-        if std is not None and (std.ndim != 2 or std.shape[0] == 0 or std.shape[1] != 2):
-            raise BadInputError(f"pixel_std must have shape (n, 2), got {std.shape}")
+        std = None if self.pixel_std is None else np.array(self.pixel_std, dtype=np.float64)
+        if std is not None and (
+            std.ndim not in (2, 3) or 0 in std.shape or std.shape[-1] not in (2, 4)
+        ):
+            raise BadInputError(
+                f"pixel_std must have shape (n, 2 or 4) or (M, n, 2 or 4), got {std.shape}"
+            )
         if std is not None and not (np.all(np.isfinite(std)) and np.all(std >= 0)):
             raise BadInputError("pixel_std must be non-negative numbers of pixels")
         object.__setattr__(self, "sigma", checked_sigma(self.sigma))
@@ -109,14 +116,30 @@ class ImageNoise:
                 "the sigma of a per-point image noise is its largest pixel_std",
                 hint="build it with ImageNoise.per_point",
             )
-        object.__setattr__(self, "pixel_std", tuple(map(tuple, std.tolist())))
+        std.flags.writeable = False
+        object.__setattr__(self, "pixel_std", std)
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, ImageNoise):
+            return NotImplemented
+        fields = ("sigma", "source", "rho_images", "rho_points")
+        same = all(getattr(self, f) == getattr(other, f) for f in fields)
+        if self.pixel_std is None or other.pixel_std is None:
+            return same and self.pixel_std is other.pixel_std
+        return same and np.array_equal(self.pixel_std, other.pixel_std)
 
     @classmethod
     def per_point(cls, pixel_std, source: str) -> ImageNoise:
-        """Independent noise of each point's left and right pixel, ``pixel_std`` (n, 2),
-        px (see the class attributes)."""
+        """Independent noise of each point's left and right pixel, ``pixel_std`` (n, 2 or
+        4) or (M, n, 2 or 4), px (see the class attributes)."""
         std = np.asarray(pixel_std, dtype=np.float64)
         return cls(float(np.max(std, initial=0.0)), source, pixel_std=std)
+
+    def of_rows(self, images: np.ndarray) -> ImageNoise:
+        """The noise of a batch of measurements in ``images`` (M,) (index of the image
+        each one lies in): this noise, the same for every image (see
+        :class:`ImageNoiseByImage`)."""
+        return self
 
     def covariance(self, n_points: int, param_cov: np.ndarray | None = None):
         """The input covariance of ``n_points`` points and its blocks
@@ -124,9 +147,9 @@ class ImageNoise:
         if self.pixel_std is None:
             return input_covariance(n_points, self.sigma, self.rho_images, self.rho_points,
                                     param_cov)  # fmt: skip
-        if len(self.pixel_std) != n_points:
+        if self.pixel_std.shape[-2] != n_points:
             raise BadInputError(
-                f"the image noise has a pixel_std for {len(self.pixel_std)} points, the "
+                f"the image noise has a pixel_std for {self.pixel_std.shape[-2]} points, the "
                 f"measurement has {n_points}"
             )
         return input_covariance(n_points, None, param_cov=param_cov, pixel_std=self.pixel_std)
@@ -138,6 +161,65 @@ class ImageNoise:
         if correlations:
             out.update(rho_images=float(self.rho_images), rho_points=float(self.rho_points))
         return out
+
+
+@dataclasses.dataclass(frozen=True)
+class ImageNoiseByImage:
+    """Independent image noise measured on each image half of a set of images, for
+    measurements that each lie in one image (a board test).
+
+    Attributes
+    ----------
+    std : ndarray, shape (I, 4), px
+        Standard deviation of ``u_L, v_L, u_R, v_R`` in image i. Read-only.
+    source : str
+        Where it comes from (for the report).
+    """
+
+    std: np.ndarray = dataclasses.field(compare=False)
+    source: str
+    rho_images: float = dataclasses.field(default=0.0, init=False)
+    rho_points: float = dataclasses.field(default=0.0, init=False)
+
+    def __post_init__(self):
+        std = np.array(self.std, dtype=np.float64)
+        valid = np.all(np.isfinite(std)) and np.all(std >= 0)
+        if std.ndim != 2 or std.shape[1] != 4 or not valid:
+            raise BadInputError("a per-image noise must be (images, 4) non-negative pixels")
+        std.flags.writeable = False
+        object.__setattr__(self, "std", std)
+
+    @property
+    def sigma(self) -> float:
+        """The median over the image halves, px (what a report quotes; ``source`` says
+        so)."""
+        return float(np.median(self.std)) if self.std.size else math.nan
+
+    def of_rows(self, images: np.ndarray) -> ImageNoise:
+        """The per-point noise (M, n, 4) of measurements in ``images`` (M,), for n points
+        filled in by :meth:`ImageNoise.covariance` (every point of a row alike)."""
+        return _RowNoise(self, np.asarray(images, dtype=np.int64))
+
+    def to_dict(self, correlations: bool = True) -> dict[str, Any]:
+        """As :meth:`ImageNoise.to_dict` (no correlations), with the halves' spread."""
+        out: dict[str, Any] = {"sigma_px": self.sigma, "sigma_source": self.source}
+        if correlations:
+            out.update(rho_images=self.rho_images, rho_points=self.rho_points)
+        if self.std.size:
+            out["sigma_px_range"] = [float(self.std.min()), float(self.std.max())]
+        return out
+
+
+@dataclasses.dataclass(frozen=True)
+class _RowNoise:
+    """:class:`ImageNoiseByImage` for one batch of measurements, sized on use."""
+
+    by_image: ImageNoiseByImage
+    images: np.ndarray
+
+    def covariance(self, n_points: int, param_cov: np.ndarray | None = None):
+        std = np.repeat(self.by_image.std[self.images][:, None, :], n_points, axis=1)
+        return ImageNoise.per_point(std, self.by_image.source).covariance(n_points, param_cov)
 
 
 def image_noise(

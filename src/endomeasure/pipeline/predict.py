@@ -147,15 +147,40 @@ class BoardPredictionReport:
         }
 
 
+def _board_grids(bt) -> dict[str, np.ndarray]:
+    """Each board's corner coordinates by id, parsed from the board test's specs."""
+    from endomeasure.features.boards import parse_board_spec
+
+    return {b: np.asarray(parse_board_spec(b).object_points) for b in dict.fromkeys(bt.board)}
+
+
 def board_predictions(bt, model, noise, **options):
     """:func:`endomeasure.measure.board_runs.board_predictions` with the boards' corner
-    grids parsed from the board test's specs (``noise``: an ImageNoise; ``options``:
-    ``param_cov``, ``at``, ``method``, ...)."""
-    from endomeasure.features.boards import parse_board_spec
+    grids parsed from the board test's specs (``noise``: an ImageNoise or
+    ImageNoiseByImage; ``options``: ``param_cov``, ``at``, ``method``, ...)."""
     from endomeasure.measure.board_runs import board_predictions as predict
 
-    grids = {b: np.asarray(parse_board_spec(b).object_points) for b in dict.fromkeys(bt.board)}
-    return predict(bt, model, grids, noise, **options)
+    return predict(bt, model, _board_grids(bt), noise, **options)
+
+
+TEST_IMAGE_NOISE = "each test image half's corner scatter, median"
+"""The ``sigma_source`` of a board-test prediction at its default image noise."""
+
+
+def board_test_noise(bt, model, noise: NoiseAssumptions, cm, what: str):
+    """The image noise of a board-test prediction: ``noise``'s when it gives a sigma or
+    correlations, else each test image half's own noise
+    (:func:`~endomeasure.measure.board_runs.test_image_noise`), which is what the
+    images show, without the calibration's misfit that its residual sigma holds."""
+    from endomeasure.measure.board_runs import test_image_noise
+    from endomeasure.measure.predict import ImageNoiseByImage
+
+    if noise.sigma is not None or noise.rho_images != 0 or noise.rho_points != 0:
+        return noise.image_noise(cm, what)
+    std = test_image_noise(bt, model, _board_grids(bt))
+    if not np.all(np.isfinite(std)):  # no image half has enough neighbouring corners
+        return noise.image_noise(cm, what)
+    return ImageNoiseByImage(std, TEST_IMAGE_NOISE)
 
 
 def _board_test_of(session, reader, model: str, cm, zone_mm: float):
@@ -195,8 +220,10 @@ def predict_board_test(
     zone = checked_zone_mm(defaults.ZONE_MM if zone_mm is None else zone_mm)
     with open_session(session) as reader:
         cm = load_calibrated_model(reader, model, session)
-        image_noise = noise.image_noise(cm, f"model {model!r}")  # checked before any work
+        if noise.sigma is not None:
+            noise.image_noise(cm, f"model {model!r}")  # checked before any work
         bt, new_record = _board_test_of(session, reader, model, cm, zone)
+    image_noise = board_test_noise(bt, cm.model, noise, cm, f"model {model!r}")
     pred = board_predictions(bt, cm.model, image_noise, **noise.propagation(cm.param_cov))
     zones = prediction_zones(bt, pred, zone)
     written = None

@@ -218,10 +218,12 @@ def input_covariance(
     ----------
     n_points, sigma, rho_images, rho_points
         See :func:`pixel_covariance`.
-    pixel_std : ndarray, shape (n_points, 2), px, optional
+    pixel_std : ndarray, shape (n_points, 2 or 4) or (M, n_points, 2 or 4), px, optional
         Instead of ``sigma`` and the correlations: an independent standard deviation per
-        point for its left and its right pixel (both coordinates), e.g. an exact clicked
-        pixel (0) and an automatic match at its own precision.
+        point for its left and its right pixel (both coordinates alike), or for each of
+        ``u_L, v_L, u_R, v_R``, e.g. an exact clicked pixel (0) and an automatic match at
+        its own precision; with a leading M, one such table per measurement (each
+        measured on its own image), and a batched covariance.
     param_cov : ndarray, shape (F, F), optional
         Covariance of the model's free parameters (in ``PARAM_NAMES`` order of the free
         ones), e.g. from calibration. Image and calibration errors are independent, so
@@ -229,13 +231,17 @@ def input_covariance(
 
     Returns
     -------
-    cov : ndarray, shape (L, L), L = 4 n + F
+    cov : ndarray, shape (L, L) or (M, L, L), L = 4 n + F
     blocks : dict
         ``{'image': slice, 'calibration': slice}`` (the latter only with ``param_cov``).
     """
     if pixel_std is not None:
         # input order per point: u_L, v_L, u_R, v_R
-        pix = np.diag(np.repeat(np.asarray(pixel_std, dtype=np.float64) ** 2, 2, axis=1).ravel())
+        var = np.asarray(pixel_std, dtype=np.float64) ** 2
+        if var.shape[-1] == 2:  # one std for both coordinates of a half
+            var = np.repeat(var, 2, axis=-1)
+        var = var.reshape(*var.shape[:-2], 4 * n_points)
+        pix = var[..., None] * np.eye(4 * n_points)
     elif sigma is None:
         raise BadInputError("the image noise is not given", hint="give sigma or pixel_std")
     else:
@@ -249,9 +255,9 @@ def input_covariance(
             f"the parameter covariance must be a finite square matrix, got {pc.shape}"
         )
     f = pc.shape[0]
-    cov = np.zeros((4 * n_points + f, 4 * n_points + f))
-    cov[: 4 * n_points, : 4 * n_points] = pix
-    cov[4 * n_points :, 4 * n_points :] = pc
+    cov = np.zeros((*pix.shape[:-2], 4 * n_points + f, 4 * n_points + f))
+    cov[..., : 4 * n_points, : 4 * n_points] = pix
+    cov[..., 4 * n_points :, 4 * n_points :] = pc
     blocks["calibration"] = slice(4 * n_points, 4 * n_points + f)
     return cov, blocks
 
