@@ -251,6 +251,27 @@ def test_pixel_covariance_per_axis():
     )
 
 
+def test_per_point_std_and_halves_correlation_are_the_plain_form_when_equal():
+    # oracle: the Kronecker form of pixel_covariance, whose structure is tested above
+    su, sv, ri = 0.02, 0.05, 0.4
+    plain = pixel_covariance(3, (su, sv), ri)
+    per_point, _ = input_covariance(
+        3, None, pixel_std=np.tile([su, sv, su, sv], (3, 1)), pixel_rho=np.tile([ri, ri], (3, 1))
+    )
+    np.testing.assert_allclose(per_point, plain, rtol=1e-15)
+    # batched, one row per measurement, with the parameters' block after the pixels'
+    std = np.stack([np.tile([su, sv, su, sv], (3, 1)), np.tile([sv, su, sv, su], (3, 1))])
+    cov, blocks = input_covariance(
+        3, None, param_cov=np.eye(2), pixel_std=std, pixel_rho=np.array([[[ri, 0.0]], [[0.0, ri]]])
+    )
+    assert cov.shape == (2, 14, 14) and blocks["calibration"] == slice(12, 14)
+    np.testing.assert_allclose(cov[0, :12, :12], pixel_covariance(3, (su, sv), 0.0) + np.kron(
+        np.eye(3), [[0, 0, ri * su**2, 0], [0, 0, 0, 0], [ri * su**2, 0, 0, 0], [0, 0, 0, 0]]
+    ), rtol=1e-15)  # fmt: skip
+    assert cov[1, 1, 3] == pytest.approx(ri * su**2) and cov[1, 0, 2] == 0.0
+    np.testing.assert_array_equal(cov[:, 12:, 12:], np.broadcast_to(np.eye(2), (2, 2, 2)))
+
+
 def test_per_axis_sigma_scales_the_depth_error_with_u_only(raytrace_model):
     """The depth of a point comes from its disparity (u); v noise barely moves it, so the
     predicted depth std must follow sigma_u."""

@@ -53,6 +53,7 @@ __all__ = [
     "prediction_zones",
     "rigid_fit",
     "run_board_test",
+    "TestImageNoise",
     "test_image_noise",
     "within_band",
 ]
@@ -277,42 +278,85 @@ MIN_IMAGE_RUNS = 10
 relative, some 20 % at 10) would be a noise source of its own."""
 
 
-def test_image_noise(bt: ModelBoardTest, model, grids: Mapping[str, np.ndarray]) -> np.ndarray:
-    """The detection noise of each test image half, measured on the image itself.
+class TestImageNoise(NamedTuple):
+    """The detection noise of each test image, measured on the image itself."""
+
+    std: np.ndarray
+    """(I, 4) px: standard deviation of ``u_L, v_L, u_R, v_R`` in test image i (u and v
+    apart: the depth follows u alone, and a prism's anamorphic magnification or an
+    interlaced sensor need not treat them alike)."""
+    rho: np.ndarray
+    """(I, 2): correlation of a corner's u_L with its u_R and of its v_L with its v_R
+    (what the two views of one corner share: its blur, its squares' foreshortening)."""
+
+
+def test_image_noise(bt: ModelBoardTest, model, grids: Mapping[str, np.ndarray]) -> TestImageNoise:
+    """The detection noise of each test image, measured on the image itself.
 
     The detected corners minus the ideal board at its estimated pose
     (:func:`ideal_board_pixels`) hold the detection noise, the pose's error and the
     model's misfit; the last two are smooth over the board and cancel in the second
     differences of neighbouring corners
-    (:func:`~endomeasure.solvers.verdict.scatter_floor`), which leave the noise that is
-    independent from corner to corner. Halves with fewer than :data:`MIN_IMAGE_RUNS`
-    runs take the median of the others (NaN when no half has enough).
-
-    Returns
-    -------
-    ndarray, shape (I, 4), px
-        Standard deviation of ``u_L, v_L, u_R, v_R`` in test image i (u and v apart: the
-        depth follows u alone, and a prism's anamorphic magnification or an interlaced
-        sensor need not treat them alike).
+    (:func:`~endomeasure.solvers.verdict.second_differences`), which leave the noise that
+    is independent from corner to corner: ``E[D^2] = 6 sigma^2`` per coordinate, and the
+    two halves' D of the same runs correlate as the noise of a corner's two views does
+    (:func:`_shrunk_correlations`). Images with fewer than :data:`MIN_IMAGE_RUNS` runs
+    take the median of the others (NaN when none has enough).
     """
-    from endomeasure.solvers.verdict import scatter_floor
+    from endomeasure.solvers.verdict import second_differences
 
-    out = np.full((len(bt.images), 4), np.nan)
+    std = np.full((len(bt.images), 4), np.nan)
+    products = np.full((len(bt.images), 3, 2), np.nan)  # sum D_L D_R, D_L^2, D_R^2
+    runs = np.zeros(len(bt.images))
     for k in range(len(bt.images)):
         ids, ql, qr, xyz = bt.image_pixels(k)
         grid = _grid_of(grids, bt, k, ids)
         il, ir = ideal_board_pixels(model, grid, xyz, ql, qr)
         ok = np.all(np.isfinite(xyz), axis=1)  # the others keep no ideal pixel
-        zeros = np.zeros(int(ok.sum()), dtype=np.int64)
-        for half, residual in enumerate((ql - il, qr - ir)):
-            for c in (0, 1):  # one coordinate's residuals: its own RMS
-                out[k, 2 * half + c] = scatter_floor(
-                    grid[ok], zeros, zeros, residual[ok][:, [c]], MIN_IMAGE_RUNS
-                )
-    finite = np.isfinite(out)
+        dl = second_differences(grid[ok], (ql - il)[ok])
+        dr = second_differences(grid[ok], (qr - ir)[ok])
+        if dl.shape[0] < MIN_IMAGE_RUNS:
+            continue
+        products[k] = np.sum(dl * dr, axis=0), np.sum(dl * dl, axis=0), np.sum(dr * dr, axis=0)
+        runs[k] = dl.shape[0]
+        std[k] = np.sqrt(np.concatenate(products[k, 1:]) / (6 * runs[k]))
+    finite = np.all(np.isfinite(std), axis=1)
     if finite.any():
-        out[~finite] = np.median(out[finite])
-    return out
+        std[~finite] = np.median(std[finite], axis=0)
+    return TestImageNoise(std, _shrunk_correlations(products, runs))
+
+
+CORRELATION_VARIANCE_FACTOR = 1.94
+"""Variance of a correlation estimated from R runs of second differences, times R, for
+small correlations: ``1 + 2 sum_k rho_k^2`` over the lags k of the runs' own
+autocorrelation (-2/3 between neighbouring runs of one line, +1/6 two apart), since
+runs share corners."""
+
+
+def _shrunk_correlations(products: np.ndarray, runs: np.ndarray) -> np.ndarray:
+    """Each image's correlation of its two halves' second differences, shrunk towards
+    the whole set's in proportion to its sampling variance (empirical Bayes).
+
+    From some 40 runs an image's own estimate scatters by about 0.2, as much as the
+    correlations themselves vary: alone it would add noise to every prediction. The
+    pooled estimate is kept where the images' spread is no larger than their sampling
+    scatter, each image's own where it is much larger. ``products`` (I, 3, 2): sums of
+    D_L D_R, D_L^2, D_R^2 per coordinate (NaN for images without enough runs).
+    """
+    own = np.isfinite(products[:, 0, 0])
+    rho = np.zeros((products.shape[0], 2))
+    if not own.any():
+        return rho
+    p = products[own]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pooled = np.nan_to_num(p[:, 0].sum(0) / np.sqrt(p[:, 1].sum(0) * p[:, 2].sum(0)))
+        single = np.nan_to_num(p[:, 0] / np.sqrt(p[:, 1] * p[:, 2]))
+    sampling = CORRELATION_VARIANCE_FACTOR / runs[own]  # (I',)
+    between = np.maximum(np.var(single, axis=0) - np.mean(sampling), 0.0)  # (2,)
+    weight = between / (between + sampling[:, None])
+    rho[:] = pooled
+    rho[own] = np.clip(pooled + weight * (single - pooled), -1.0, 1.0)
+    return rho
 
 
 def board_predictions(

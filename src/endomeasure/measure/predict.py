@@ -165,8 +165,9 @@ class ImageNoise:
 
 @dataclasses.dataclass(frozen=True)
 class ImageNoiseByImage:
-    """Independent image noise measured on each image half of a set of images, for
-    measurements that each lie in one image (a board test).
+    """Image noise measured on each image of a set, for measurements that each lie in
+    one image (a board test): per half and coordinate, independent from point to point,
+    with the correlation of a point's two views.
 
     Attributes
     ----------
@@ -174,10 +175,14 @@ class ImageNoiseByImage:
         Standard deviation of ``u_L, v_L, u_R, v_R`` in image i. Read-only.
     source : str
         Where it comes from (for the report).
+    rho : ndarray, shape (I, 2), optional
+        Correlation of a point's u_L with its u_R, and of v_L with v_R, in image i (zero
+        if not given). Read-only.
     """
 
     std: np.ndarray = dataclasses.field(compare=False)
     source: str
+    rho: np.ndarray | None = dataclasses.field(default=None, compare=False)
     rho_images: float = dataclasses.field(default=0.0, init=False)
     rho_points: float = dataclasses.field(default=0.0, init=False)
 
@@ -186,8 +191,12 @@ class ImageNoiseByImage:
         valid = np.all(np.isfinite(std)) and np.all(std >= 0)
         if std.ndim != 2 or std.shape[1] != 4 or not valid:
             raise BadInputError("a per-image noise must be (images, 4) non-negative pixels")
-        std.flags.writeable = False
-        object.__setattr__(self, "std", std)
+        rho = np.zeros((std.shape[0], 2)) if self.rho is None else np.array(self.rho, float)
+        if rho.shape != (std.shape[0], 2) or not np.all(np.abs(rho) <= 1.0):
+            raise BadInputError("a per-image noise's correlations must be (images, 2) in [-1, 1]")
+        for name, value in (("std", std), ("rho", rho)):
+            value.flags.writeable = False
+            object.__setattr__(self, name, value)
 
     @property
     def sigma(self) -> float:
@@ -207,6 +216,7 @@ class ImageNoiseByImage:
             out.update(rho_images=self.rho_images, rho_points=self.rho_points)
         if self.std.size:
             out["sigma_px_range"] = [float(self.std.min()), float(self.std.max())]
+            out["rho_halves_median"] = [float(q) for q in np.median(self.rho, axis=0)]
         return out
 
 
@@ -218,8 +228,12 @@ class _RowNoise:
     images: np.ndarray
 
     def covariance(self, n_points: int, param_cov: np.ndarray | None = None):
-        std = np.repeat(self.by_image.std[self.images][:, None, :], n_points, axis=1)
-        return ImageNoise.per_point(std, self.by_image.source).covariance(n_points, param_cov)
+        std = self.by_image.std[self.images][:, None, :]
+        rho = self.by_image.rho[self.images][:, None, :]
+        return input_covariance(
+            n_points, None, param_cov=param_cov,
+            pixel_std=np.repeat(std, n_points, axis=1), pixel_rho=rho,
+        )  # fmt: skip
 
 
 def image_noise(

@@ -170,17 +170,18 @@ TEST_IMAGE_NOISE = "each test image half's corner scatter, median"
 def board_test_noise(bt, model, noise: NoiseAssumptions, cm, what: str):
     """The image noise of a board-test prediction: ``noise``'s when it gives a sigma or
     correlations, else each test image half's own noise
-    (:func:`~endomeasure.measure.board_runs.test_image_noise`), which is what the
-    images show, without the calibration's misfit that its residual sigma holds."""
+    and the correlation of a corner's two views
+    (:func:`~endomeasure.measure.board_runs.test_image_noise`): what the images show,
+    without the calibration's misfit that its residual sigma holds."""
     from endomeasure.measure.board_runs import test_image_noise
     from endomeasure.measure.predict import ImageNoiseByImage
 
     if noise.sigma is not None or noise.rho_images != 0 or noise.rho_points != 0:
         return noise.image_noise(cm, what)
-    std = test_image_noise(bt, model, _board_grids(bt))
-    if not np.all(np.isfinite(std)):  # no image half has enough neighbouring corners
+    measured = test_image_noise(bt, model, _board_grids(bt))
+    if not np.all(np.isfinite(measured.std)):  # no image has enough neighbouring corners
         return noise.image_noise(cm, what)
-    return ImageNoiseByImage(std, TEST_IMAGE_NOISE)
+    return ImageNoiseByImage(measured.std, TEST_IMAGE_NOISE, measured.rho)
 
 
 def _board_test_of(session, reader, model: str, cm, zone_mm: float):

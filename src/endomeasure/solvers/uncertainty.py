@@ -211,6 +211,7 @@ def input_covariance(
     param_cov: np.ndarray | None = None,
     *,
     pixel_std: np.ndarray | None = None,
+    pixel_rho: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, slice]]:
     """Covariance of the stacked input ``[pixels, free parameters]`` and its blocks.
 
@@ -224,6 +225,9 @@ def input_covariance(
         ``u_L, v_L, u_R, v_R``, e.g. an exact clicked pixel (0) and an automatic match at
         its own precision; with a leading M, one such table per measurement (each
         measured on its own image), and a batched covariance.
+    pixel_rho : ndarray, shape (..., n_points, 2), optional
+        With ``pixel_std``: the correlation of each point's u_L with its u_R and of its
+        v_L with its v_R (errors shared by the two views of one point); else 0.
     param_cov : ndarray, shape (F, F), optional
         Covariance of the model's free parameters (in ``PARAM_NAMES`` order of the free
         ones), e.g. from calibration. Image and calibration errors are independent, so
@@ -242,6 +246,13 @@ def input_covariance(
             var = np.repeat(var, 2, axis=-1)
         var = var.reshape(*var.shape[:-2], 4 * n_points)
         pix = var[..., None] * np.eye(4 * n_points)
+        if pixel_rho is not None:
+            std = np.sqrt(var).reshape(*var.shape[:-1], n_points, 2, 2)  # (point, half, uv)
+            cross = np.asarray(pixel_rho, dtype=np.float64) * std[..., 0, :] * std[..., 1, :]
+            left = 4 * np.arange(n_points)[:, None] + np.arange(2)  # (n, 2): u_L, v_L
+            cross = np.broadcast_to(cross, (*pix.shape[:-2], n_points, 2))
+            pix[..., left, left + 2] = cross
+            pix[..., left + 2, left] = cross
     elif sigma is None:
         raise BadInputError("the image noise is not given", hint="give sigma or pixel_std")
     else:

@@ -45,6 +45,7 @@ __all__ = [
     "judge",
     "noise_floor",
     "scatter_floor",
+    "second_differences",
     "VERDICT_LEVELS",
     "OK_RMS_RATIO",
     "FAILED_RMS_RATIO",
@@ -102,22 +103,36 @@ def scatter_floor(
     keys = np.asarray(image, dtype=np.int64) * 2 + np.asarray(half, dtype=np.int64)
     for key in np.unique(keys):
         sel = np.flatnonzero(keys == key)
-        if sel.size < 3:
-            continue
-        X, r = board_points[sel, :2], residuals[sel]
-        d = np.linalg.norm(X[:, None, :] - X[None, :, :], axis=-1)
-        step = d[np.triu_indices(sel.size, 1)].min()
-        cell = np.rint((X - X.min(axis=0)) / step).astype(np.int64)
-        grid = np.full(tuple(cell.max(axis=0) + 1), -1, dtype=np.int64)
-        grid[cell[:, 0], cell[:, 1]] = np.arange(sel.size)
-        for axis in (0, 1):
-            lo = np.moveaxis(grid, axis, 0)
-            a, b, c = lo[:-2], lo[1:-1], lo[2:]
-            ok = (a >= 0) & (b >= 0) & (c >= 0)
-            second = r[a[ok]] - 2 * r[b[ok]] + r[c[ok]]
-            total += float(np.sum(second * second))
-            runs += int(ok.sum())
+        second = second_differences(board_points[sel], residuals[sel])
+        total += float(np.sum(second * second))
+        runs += second.shape[0]
     return float(np.sqrt(total / (6 * runs))) if runs >= min_runs else float("nan")
+
+
+def second_differences(board_points, residuals) -> np.ndarray:
+    """``r_a - 2 r_b + r_c`` over every run of three corners one square apart along a
+    row or column of one board in one image half (:func:`scatter_floor`).
+
+    ``board_points`` (K, 3), mm, board frame; ``residuals`` (K, C). Returns (R, C), the
+    runs along the board's first axis, then its second; the same corners give the same
+    runs in the same order, so two halves' runs pair up.
+    """
+    residuals = np.asarray(residuals, dtype=np.float64)
+    if board_points.shape[0] < 3:
+        return np.zeros((0, residuals.shape[1]))
+    X = board_points[:, :2]
+    d = np.linalg.norm(X[:, None, :] - X[None, :, :], axis=-1)
+    step = d[np.triu_indices(X.shape[0], 1)].min()
+    cell = np.rint((X - X.min(axis=0)) / step).astype(np.int64)
+    grid = np.full(tuple(cell.max(axis=0) + 1), -1, dtype=np.int64)
+    grid[cell[:, 0], cell[:, 1]] = np.arange(X.shape[0])
+    out = []
+    for axis in (0, 1):
+        lo = np.moveaxis(grid, axis, 0)
+        a, b, c = lo[:-2], lo[1:-1], lo[2:]
+        ok = (a >= 0) & (b >= 0) & (c >= 0)
+        out.append(residuals[a[ok]] - 2 * residuals[b[ok]] + residuals[c[ok]])
+    return np.concatenate(out)
 
 
 @dataclasses.dataclass(frozen=True)
