@@ -18,13 +18,19 @@ the simulator's true corner pixels (issue 17's groundwork):
 - the noise each calibration image half shows itself: the scatter of its neighbouring
   corners' residuals (second differences along the board's rows and columns,
   :func:`~endomeasure.solvers.verdict.scatter_floor` per image half, per coordinate),
-  with the same ratio and correlation to the true noise.
-
-With ``--zone-noise SEEDS`` (slow: one ``predict-error`` per board and zone), those
-designs' board tests are also predicted with each board and zone's measured test-set
-noise, u and v, and its correlations (the prediction ``bench/accuracy_report.py`` makes
-for the default preset), against ``predict-error``'s defaults: zones with n >= 30 whose
-actual std is within +-25 % of the predicted one.
+  with the same ratio and correlation to the true noise;
+- the same for the test images as ``predict-error --board-test`` measures it by default
+  (:func:`~endomeasure.measure.board_runs.test_image_noise`, per coordinate);
+- the board test's zones with n >= 30 whose actual std is within +-25 % of the predicted
+  one, predicted three ways: with the calibration's residual sigma for every point (the
+  earlier default), with the default (each test image's own measured noise and the
+  correlation of a corner's two views), and with each test image's *true* noise and
+  correlation (from the simulator's corner pixels: what no noise model independent from
+  corner to corner can beat);
+- the correlation of neighbouring corners' true disparity errors (u_L - u_R) along the
+  board's rows and along its columns (over every test image's pairs), which a model of
+  independent corners leaves out and which the adjacent-corner segments of a board test
+  feel.
 
 Writes the "noise-designs" section of docs/accuracy.md unless ``--no-write``.
 """
@@ -124,42 +130,95 @@ def design_noise(session: Path, folder: Path) -> dict | None:
     }
 
 
-def zone_noise_prediction(session: Path, folder: Path) -> tuple[int, int]:
-    """(zones with n >= 30 within +-25 %, zones) with each board and zone's measured
-    test-set noise (``bench/accuracy_report.py``'s primary prediction)."""
-    import shutil
-    import tempfile
-
-    from accuracy_report import detection_noise, group_sigma_prediction
+def _zones_within(bt, cm, noise) -> tuple[int, int]:
+    """(zones with n >= 30 whose actual std is within +-25 % of the predicted, zones)."""
     from endomeasure import defaults
+    from endomeasure.measure.board_runs import prediction_zones
+    from endomeasure.pipeline.predict import board_predictions
 
-    with tempfile.TemporaryDirectory() as tmp:  # predict-error stores its prediction
-        copy = Path(tmp) / session.name
-        shutil.copy(session, copy)
-        noise = detection_noise(copy, folder, defaults.ZONE_MM)
-        pred = group_sigma_prediction(copy, noise["board_zones"], defaults.ZONE_MM,
-                                      per_axis=True, rho=True)  # fmt: skip
-    zones = [z for z in pred["zones"] if z["n"] >= MIN_ZONE_N]
+    pred = board_predictions(bt, cm.model, noise, param_cov=cm.param_cov)
+    zones = [z for z in prediction_zones(bt, pred, defaults.ZONE_MM) if z["n"] >= MIN_ZONE_N]
     close = sum(abs(z["actual_std"] / z["predicted_std"] - 1.0) <= STD_RATIO_LIMIT for z in zones)
     return close, len(zones)
 
 
-def _default_zones(work: Path, seed: int) -> tuple[int, int]:
-    """The same count with ``predict-error``'s defaults, from the sweep's stored record."""
-    import json
+def _true_errors(bt, halves: dict) -> tuple[np.ndarray, np.ndarray, list]:
+    """Per test image of the board test: true noise (I, 4) px, true correlation of a
+    corner's two views (I, 2), and the disparity errors by corner id."""
+    std, rho, disparity = np.zeros((len(bt.images), 4)), np.zeros((len(bt.images), 2)), []
+    for k, name in enumerate(bt.images):
+        ids = bt.image_pixels(k)[0]
+        e = []
+        for half in ("left", "right"):
+            h = halves[(name, half)]
+            at = {int(i): n for n, i in enumerate(h.ids)}
+            e.append(np.array([h.detected[at[i]] - h.true_pixels[i] for i in ids]))
+        left, right = e
+        ok = np.all(np.isfinite(left), axis=1) & np.all(np.isfinite(right), axis=1)
+        left, right = left[ok], right[ok]
+        std[k] = np.sqrt(np.concatenate([np.mean(left**2, 0), np.mean(right**2, 0)]))
+        rho[k] = np.mean(left * right, 0) / np.sqrt(np.mean(left**2, 0) * np.mean(right**2, 0))
+        disparity.append(dict(zip(ids[ok].tolist(), left[:, 0] - right[:, 0], strict=True)))
+    return std, rho, disparity
 
-    for line in (work / "designs.jsonl").read_text().splitlines():
-        r = json.loads(line)
-        if r["seed"] == seed and "board" in r:
-            zones = r["board"].get("prediction", [])
-            return sum(abs(z["std_ratio"] - 1.0) <= STD_RATIO_LIMIT for z in zones), len(zones)
-    return 0, 0
+
+def _neighbour_correlation(disparity: list, cols: list[int]) -> tuple[float, float]:
+    """Correlation of neighbouring corners' disparity errors along the board's rows and
+    along its columns, over the pairs of every test image."""
+    out = []
+    for along_row in (True, False):
+        pairs = []
+        for d, c in zip(disparity, cols, strict=True):
+            step = 1 if along_row else c
+            pairs += [(d[i], d[i + step]) for i in d
+                      if i + step in d and not (along_row and i % c == c - 1)]  # fmt: skip
+        a = np.array(pairs).reshape(-1, 2)
+        ok = a.shape[0] >= MIN_CORNERS
+        out.append(
+            float(np.mean(a[:, 0] * a[:, 1]) / np.sqrt(np.mean(a**2, 0).prod())) if ok else np.nan
+        )
+    return out[0], out[1]
 
 
-def section(rows: dict[int, dict], designs: str, zone_noise: dict[int, tuple]) -> str:
+def board_figures(session: Path, folder: Path) -> dict | None:
+    """The test images' measured noise against the truth, and the board test's zones
+    predicted three ways (module docstring)."""
+    import shutil
+    import tempfile
+
+    from endomeasure import defaults
+    from endomeasure.features.boards import parse_board_spec
+    from endomeasure.io.records import load_calibrated_model
+    from endomeasure.io.session import open_session
+    from endomeasure.measure.board_runs import test_image_noise
+    from endomeasure.measure.predict import ImageNoise, ImageNoiseByImage
+    from endomeasure.pipeline.predict import _board_grids, _board_test_of
+
+    with tempfile.TemporaryDirectory() as tmp:  # a new board test is not stored
+        copy = Path(tmp) / session.name
+        shutil.copy(session, copy)
+        with open_session(copy) as reader:
+            cm = load_calibrated_model(reader, "raytrace", copy)
+            bt, _ = _board_test_of(copy, reader, "raytrace", cm, defaults.ZONE_MM)
+    halves = {(h.image, h.half): h for h in detection_errors(folder, session, sets=("test",))}
+    measured = test_image_noise(bt, cm.model, _board_grids(bt))
+    std, rho, disparity = _true_errors(bt, halves)
+    cols = [parse_board_spec(b).cols for b in bt.board]
+    return {
+        "test_scatter": _spread(std.ravel(), measured.std.ravel()),
+        "zones": {
+            "residual": _zones_within(bt, cm, ImageNoise(cm.sigma_px)),
+            "default": _zones_within(bt, cm, ImageNoiseByImage(measured.std, "", measured.rho)),
+            "truth": _zones_within(bt, cm, ImageNoiseByImage(std, "", np.clip(rho, -1, 1))),
+        },
+        "neighbour": _neighbour_correlation(disparity, cols),
+    }
+
+
+def section(rows: dict[int, dict], designs: str) -> str:
     assumed = [r["residual_sigma"] / r["test_sigma"] for r in rows.values()]
     figures = {}
-    for kind in ("formal", "scatter"):
+    for kind in ("formal", "scatter", "test_scatter"):
         figures[kind] = (
             [r[kind]["ratio"][1] for r in rows.values()],
             [r[kind]["ratio"][2] / r[kind]["ratio"][0] for r in rows.values()],
@@ -175,51 +234,70 @@ def section(rows: dict[int, dict], designs: str, zone_noise: dict[int, tuple]) -
         "",
         "| figure | median over the designs | range |",
         "|---|---:|---|",
-        f"| `predict-error`'s default sigma (calibration residuals) / test set's noise | "
-        f"{statistics.median(assumed):.2f} | {min(assumed):.2f}-{max(assumed):.2f} |",
+        f"| the calibration's residual sigma / test set's noise | {cells(assumed)} |",
     ]
     kinds = (
         ("formal", "the detector's formal sigma (calib and test images)"),
         ("scatter", "the scatter of its neighbouring corners (calib images)"),
+        ("test_scatter", "`predict-error`'s default: the same on each test image, per coordinate"),
     )
     for kind, what in kinds:
         medians, spreads, corr = figures[kind]
         lines += [
-            f"| true noise of an image half / {what}, median over a design's image halves | "
-            f"{cells(medians)} |",
+            f"| true noise / {what}, median over a design's image halves | {cells(medians)} |",
             f"| the same, 90th / 10th percentile within a design | {cells(spreads)} |",
             f"| correlation of the two over a design's image halves (log) | {cells(corr)} |",
         ]
+    along = [[r["neighbour"][i] for r in rows.values()] for i in (0, 1)]
+    lines += [
+        f"| true disparity errors of neighbouring corners, correlation along the board's rows "
+        f"| {cells(along[0])} |",
+        f"| the same along its columns | {cells(along[1])} |",
+    ]
+    totals = {k: [sum(r["zones"][k][i] for r in rows.values()) for i in (0, 1)]
+              for k in ("residual", "default", "truth")}  # fmt: skip
+    ways = (
+        ("residual", "the calibration's residual sigma, every point alike"),
+        ("default", "`predict-error`'s default: each test image's measured noise"),
+        ("truth", "each test image's true noise and correlation (the ceiling)"),
+    )
     lines += [
         "",
-        "Per design: test set's noise (px per coordinate), the default sigma (px); true noise "
-        "of an image half over the formal sigma and over the neighbour scatter (10th / 50th "
-        "/ 90th percentile over the image halves) and their correlations.",
+        "Board-test zones with n >= 30 whose actual std is within +-25 % of the predicted one "
+        "(all designs):",
         "",
-        "| seed | test noise | default sigma | true / formal | correlation | true / scatter "
-        "| correlation |",
-        "|---|---:|---:|---|---:|---|---:|",
+        "| image noise of the prediction | zones within +-25 % |",
+        "|---|---:|",
     ]
+    for k, what in ways:
+        close, total = totals[k]
+        if total:
+            lines.append(f"| {what} | {close} of {total} ({100 * close / total:.1f} %) |")
+    lines += [
+        "",
+        "Per design: test set's noise (px per coordinate), the residual sigma (px); true noise "
+        "of an image half over the formal sigma, over the calibration images' neighbour "
+        "scatter and over the default's measured noise of the test images (10th / 50th / 90th "
+        "percentile over the image halves; correlation); zones within +-25 % with the residual "
+        "sigma, the default and the true noise; neighbour correlation of the true disparity "
+        "errors along rows / columns.",
+        "",
+        "| seed | test noise | residual sigma | true / formal | true / calib scatter | true / "
+        "test scatter | zones: residual / default / true | neighbours |",
+        "|---|---:|---:|---|---|---|---|---|",
+    ]  # fmt: skip
+
+    def spread(f):
+        return " / ".join(f"{q:.2f}" for q in f["ratio"]) + f" ({f['correlation']:+.2f})"
+
     for seed, r in sorted(rows.items()):
-        f, s = r["formal"], r["scatter"]
+        z = r["zones"]
         lines.append(
             f"| {seed} | {r['test_sigma']:.4f} | {r['residual_sigma']:.4f} | "
-            + " / ".join(f"{q:.2f}" for q in f["ratio"])
-            + f" | {f['correlation']:+.2f} | "
-            + " / ".join(f"{q:.2f}" for q in s["ratio"])
-            + f" | {s['correlation']:+.2f} |"
+            f"{spread(r['formal'])} | {spread(r['scatter'])} | {spread(r['test_scatter'])} | "
+            + " / ".join(f"{z[k][0]}" for k in ("residual", "default", "truth"))
+            + f" of {z['default'][1]} | {r['neighbour'][0]:+.2f} / {r['neighbour'][1]:+.2f} |"
         )
-    if zone_noise:
-        lines += [
-            "",
-            "Board-test zones (n >= 30) whose actual std is within +-25 % of the predicted "
-            "one (`--zone-noise`):",
-            "",
-            "| seed | predict-error's defaults | each board and zone's measured noise |",
-            "|---|---:|---:|",
-            *(f"| {seed} | {d[0]} of {d[1]} | {m[0]} of {m[1]} |"
-              for seed, (d, m) in sorted(zone_noise.items())),
-        ]  # fmt: skip
     return "\n".join(lines)
 
 
@@ -227,8 +305,6 @@ def main(argv=None) -> int:
     parser = script_parser(__doc__)
     parser.add_argument("work", type=Path, help="an accuracy_designs.py work folder")
     parser.add_argument("--designs", default="1-40", help="seeds, e.g. 1-40 or 1,5")
-    parser.add_argument("--zone-noise", default="", help="seeds to predict with the measured "
-                        "noise of each board and zone, e.g. 2,5")  # fmt: skip
     args = parser.parse_args(argv)
     report = Report("bench/noise_designs.py", args, ACCURACY)
     rows = {}
@@ -238,16 +314,10 @@ def main(argv=None) -> int:
             continue
         r = design_noise(stem.with_suffix(".h5"), stem)
         if r is not None:
+            r.update(board_figures(stem.with_suffix(".h5"), stem))
             rows[seed] = r
-            print(seed, r, flush=True)
-    zone_noise = {}
-    for seed in _seeds(args.zone_noise) if args.zone_noise else []:
-        stem = args.work / f"design_{seed:03d}"
-        if seed in rows:
-            measured = zone_noise_prediction(stem.with_suffix(".h5"), stem)
-            zone_noise[seed] = (_default_zones(args.work, seed), measured)
-            print(seed, zone_noise[seed], flush=True)
-    return report.finish({SECTION: section(rows, args.designs, zone_noise)})
+            print(seed, r["zones"], r["neighbour"], flush=True)
+    return report.finish({SECTION: section(rows, args.designs)})
 
 
 if __name__ == "__main__":
