@@ -732,13 +732,12 @@ The same {h["n"]} distances under other inputs (within: |error| <= 2 sigma; with
   relative shift of two noisy patches, from the patch texture, the image noise of both
   halves and the warp between them, including the second-order term of the noise times
   the noise's own derivative, which doubles the variance on weak texture) plus the
-  search's misfit (`MISFIT_DN`, an equivalent image noise of 1 grey level measured on
-  noise-free renders of scene seeds 1 and 2, not these images). Without the second-order
-  term the precision was about twice too optimistic on random points of the metal, with
-  it RMS z is 0.8-1.2 on noisy renders of seeds 0-5 ("Match precision against the
-  simulator's truth", `bench/match_precision.py`); the marks, whose strong texture
-  makes it negligible, 0.7-1.0 (the misfit term was fitted on renders made before the
-  simulator's pixel kernel of 2026-11-23, so it is now on the safe side). With the
+  two patches' misfit measured at each match (what the searched patch differs from the
+  reference patch's photometric fit by beyond the two noises: the fit's a-posteriori
+  variance, no constant). Without the second-order term the precision was about twice
+  too optimistic on random points of the metal; with it, RMS z on noisy renders of
+  seeds 0-5 is in "Match precision against the simulator's truth"
+  (`bench/match_precision.py`), for random points and for the marks. With the
   truth optics and the sample images the matches are
   {float(np.sqrt(np.nanmean(np.sum(noisy_truth_err**2, 1)))):.3f} px RMS, on noise-free
   renders of the same scenes {float(np.sqrt(np.nanmean(np.sum(clean_err**2, 1)))):.3f} px

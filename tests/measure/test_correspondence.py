@@ -647,3 +647,23 @@ def test_precision_is_an_honest_sigma_on_weak_texture(plane_scene):
     assert 0.08 < np.median(precision) < 0.4  # the weak regime this test is about
     rms = np.sqrt(np.mean(np.square(z)))
     assert Z_RMS_RANGE[0] < rms < Z_RMS_RANGE[1], rms
+
+
+def test_the_misfit_is_what_the_residual_holds_beyond_its_noise(rng):
+    # oracle: residuals built from spline-interpolated white noise of known sigma (the
+    # variance the function subtracts, checked against scipy above) plus a deterministic
+    # difference of known RMS
+    from endomeasure.measure.correspondence import _measured_misfit, _spline_noise_variance
+
+    n, gain, s_ref, s_t = 20_000, 0.8, 2.0, 3.0
+    ref = rng.uniform(10, 20, (n, 2))
+    target = rng.uniform(10, 20, (n, 2))
+    std = np.sqrt(gain**2 * s_ref**2 * _spline_noise_variance(ref)[0]
+                  + s_t**2 * _spline_noise_variance(target)[0])  # fmt: skip
+    noise = rng.normal(0.0, 1.0, n) * std
+    assert _measured_misfit(noise, gain, s_ref, s_t, ref, target) < 0.1 * s_t
+    difference = 1.5 * np.sqrt(2.0) * np.sin(np.linspace(0, 40 * np.pi, n))  # RMS 1.5
+    got = _measured_misfit(noise + difference, gain, s_ref, s_t, ref, target)
+    assert got == pytest.approx(1.5, rel=0.05)
+    # a noise-free, perfectly fitted patch has no misfit
+    assert _measured_misfit(np.zeros(n), gain, s_ref, s_t, ref, target) == 0.0

@@ -71,13 +71,16 @@ curve, in pixels of the searched half (:func:`_match_precision`), where ``measur
 applies it. From the reference patch's derivative energy ``E`` (noise subtracted),
 mapped into the searched half by the final warp, over ``n`` samples:
 
-``var = (a^2 s_r^2 + rho s_t^2) / E * (1 + n D s_t^2 / E) + (1 + a^2) m^2 / E``
+``var = (a^2 s_r^2 + rho s_t^2) / E * (1 + n D s_t^2 / E) + m^2 / E``
 
 with ``a`` the gain between the halves, ``s_r`` and ``s_t`` the noise of the reference
 and the searched half, ``rho`` the mean correlation row sum of the searched half's
 interpolated noise at the warped samples (1 on the pixel grid, ``1/det A`` for samples
 packed closer than pixels by a compressing warp), ``D = 2.16 /px^2`` the variance of the
-derivative of spline-interpolated unit noise and ``m`` the misfit :data:`MISFIT_DN`.
+derivative of spline-interpolated unit noise and ``m`` the misfit: the mean square of
+what the searched patch differs from the reference patch's photometric fit by, beyond
+what the two noises give, measured at each match (:func:`_measured_misfit`, a
+least-squares fit's a-posteriori variance).
 The first factor is the classic least-squares term. The second is the noise times the
 *noise's own derivative* in the searched patch (the refinement's gradients are those of
 the noisy image): negligible on strong texture, but where the per-sample gradient is
@@ -127,7 +130,6 @@ __all__ = [
     "MAX_SECOND_RATIO",
     "MAX_PRECISION_PX",
     "BACK_TOLERANCE_PX",
-    "MISFIT_DN",
 ]
 
 WARPS = ("plane", "affine", "none")
@@ -150,18 +152,6 @@ BACK_TOLERANCE_PX = 1.0
 within ``MAX_SECOND_RATIO`` of its own best) for the match to count as mutual."""
 NOISE_FLOOR_DN = 1.0 / np.sqrt(12.0)
 """Smallest image noise assumed for integer images: the rounding to whole grey levels."""
-MISFIT_DN = 1.0
-"""Systematic misfit of the matching, as an equivalent image noise (grey levels of an
-8-bit image; scaled to the range of 16-bit images), added in quadrature to the image
-noise in the reported ``precision_px``. What the two halves show of a surface patch
-differs by more than the search models (interpolation, unmodelled brightness fall-off
-and highlights, the pixels' own sampling), so even on noise-free images the matches
-keep an error the noise term cannot predict. It is one grey level fitted on noise-free
-renders of the default preset's scene set only, and does not give an RMS z-score of 1
-there either (random points come out over-, marks under-predicted): a constant, not a
-measured term (issue 17 replaces it). On noisy images the noise term dominates. What it
-gives: ``bench/match_precision.py`` (with ``--noise-free`` for the noise-free renders),
-``docs/accuracy.md``, "Match precision against the simulator's truth"."""
 _NOISE_WINDOW_PATCHES = 4
 """Side of the local noise-estimation window, in patch sizes."""
 _REFINE_ITERATIONS = 12
@@ -224,9 +214,9 @@ class Match:
     precision_px : float, px
         Predicted standard deviation of the match along the curve, in pixels of the
         other half, from the reference patch's texture, the image noise of both halves,
-        the warp and the search's misfit (:data:`MISFIT_DN`; see the module notes,
-        *Precision*); for refused points the reference half's first-order estimate; inf
-        if untextured.
+        the warp and the two patches' misfit measured at the match (see the module
+        notes, *Precision*); for refused points the reference half's first-order
+        estimate; inf if untextured.
     noise_sigma : float
         Image noise used for the texture criterion, grey levels.
     back_px : float, px
@@ -381,18 +371,16 @@ class MatchSettings:
 
 
 class _Image(NamedTuple):
-    """The searched image: float64 grey levels (H, W), the noise floor of its type and
-    the search's misfit noise (:data:`MISFIT_DN`), both in its grey levels."""
+    """The searched image: float64 grey levels (H, W) and the noise floor of its type,
+    in its grey levels."""
 
     grey: np.ndarray
     floor: float
-    misfit: float
 
 
 def _grey(image: np.ndarray, model: CameraModel) -> _Image:
     """The image as an :class:`_Image`, checked against the model's sensor."""
     image = np.asarray(image)
-    misfit = MISFIT_DN
     width, height = model.config.image_size
     if image.ndim == 3 and image.shape[2] in (1, 3, 4):
         channels = image[..., :3] if image.shape[2] == 4 else image
@@ -410,15 +398,13 @@ def _grey(image: np.ndarray, model: CameraModel) -> _Image:
         )
     if image.dtype.kind in "ui":
         floor = NOISE_FLOOR_DN
-        if image.dtype.itemsize > 1:
-            misfit = MISFIT_DN * 257.0
     elif image.dtype.kind == "f":
         if not np.all(np.isfinite(grey)):
             raise BadInputError("image contains NaN or infinite values")
         floor = 0.0
     else:
         raise BadInputError(f"image of type {image.dtype} is not a grey-level image")
-    return _Image(grey, floor, misfit)
+    return _Image(grey, floor)
 
 
 def _half_columns(model: CameraModel, half: Half) -> tuple[int, int]:
@@ -752,14 +738,15 @@ def _match_precision(
     ``energy_t`` is the signal's derivative energy along the curve in the searched half
     (grey levels^2 / px^2, over ``n`` samples), ``gain`` the brightness ratio of the
     halves, ``noise_ref`` and ``noise_t`` the noise of the reference and searched half,
-    ``misfit`` :data:`MISFIT_DN` and ``correlation`` from
+    ``misfit`` the two patches' difference beyond noise per sample
+    (:func:`_measured_misfit`) and ``correlation`` from
     :func:`_interpolated_noise_correlation`.
     """
     if not energy_t > 0:
         return np.inf
     first = (gain**2 * noise_ref**2 + correlation * noise_t**2) / energy_t
     second = n * _spline_derivative_noise() * noise_t**2 / energy_t
-    return float(np.sqrt(first * (1.0 + second) + (1.0 + gain**2) * misfit**2 / energy_t))
+    return float(np.sqrt(first * (1.0 + second) + misfit**2 / energy_t))
 
 
 def _search_direction(search: _Search, index: int) -> np.ndarray | None:
@@ -1081,11 +1068,9 @@ def _check_texture(query: _Query, search: _Search, noise: float, fields: dict) -
     precision = _localisation_precision(
         query.image.grey, query.pixel, query.cols, query.offsets, direction, noise
     )
-    # reported: the noise term plus the search's misfit (MISFIT_DN) in quadrature; the
-    # texture check uses the noise term alone (what the texture can locate)
-    reported = precision * np.sqrt(1.0 + (query.image.misfit / noise) ** 2)
+    # the noise term alone until the match is refined and its misfit measured
     fields.update(
-        precision_px=reported, back_px=np.nan,
+        precision_px=precision, back_px=np.nan,
         curve=curve.pixels[valid], curve_depths_mm=curve.depths_mm[valid],
     )  # fmt: skip
     limit = query.settings.max_precision_px
@@ -1229,14 +1214,45 @@ def _refined_precision(
         stretch = 1.0 / float(np.linalg.norm(np.linalg.solve(a_fit, tangent)))
     except np.linalg.LinAlgError:
         stretch = np.nan
-    design = np.stack([refined.template_fine, np.ones(offsets.shape[0]), *offsets.T], axis=-1)
+    n = offsets.shape[0]
+    design = np.stack([refined.template_fine, np.ones(n), *offsets.T], axis=-1)
     fine = _sample_spline(query.image.grey, pos, query.target_cols)[0]
-    gain = float(np.linalg.lstsq(design, fine, rcond=None)[0][0])
+    coef = np.linalg.lstsq(design, fine, rcond=None)[0]
+    gain = float(coef[0])
+    misfit = _measured_misfit(
+        fine - design @ coef, gain, noise, refined.target_noise, query.pixel + offsets, pos
+    )
     energy_ref = 2.0 * noise**2 / precision**2
     return _match_precision(
-        energy_ref / stretch**2, offsets.shape[0], gain, noise, refined.target_noise,
-        query.image.misfit, _interpolated_noise_correlation(pos),
+        energy_ref / stretch**2, n, gain, noise, refined.target_noise, misfit,
+        _interpolated_noise_correlation(pos),
     )  # fmt: skip
+
+
+def _measured_misfit(
+    residual: np.ndarray, gain: float, noise_ref: float, noise_t: float, ref_pos, target_pos
+) -> float:
+    """What the two halves' patches differ by beyond their noise, grey levels per sample.
+
+    ``residual`` (n,): the searched patch minus the reference patch's photometric fit
+    (gain, offset, ramp: 4 parameters) at the match. Its expected mean square from noise
+    alone is ``(gain^2 s_r^2 V_r + s_t^2 V_t) (n - 4) / n`` with ``V`` the variance of
+    spline-interpolated unit noise at the samples (:func:`_spline_noise_variance`); what
+    is left is the misfit the search's model of the two views does not explain (blur and
+    aberrations that differ between the halves, highlights, the surface's own shape),
+    measured on this match, as a least-squares fit's a-posteriori variance is; zero
+    where the residual is no larger than the noise.
+    """
+    n = residual.size
+    expected = (
+        (
+            gain**2 * noise_ref**2 * float(np.mean(_spline_noise_variance(ref_pos)[0]))
+            + noise_t**2 * float(np.mean(_spline_noise_variance(target_pos)[0]))
+        )
+        * (n - 4)
+        / n
+    )
+    return float(np.sqrt(max(float(np.mean(residual**2)) - expected, 0.0)))
 
 
 def _matched(query: _Query, search: _Search, q: np.ndarray, fields: dict) -> Match:
