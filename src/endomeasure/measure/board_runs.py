@@ -359,6 +359,12 @@ def _shrunk_correlations(products: np.ndarray, runs: np.ndarray) -> np.ndarray:
     return rho
 
 
+ROW_BATCH = 1024
+"""Board-test rows predicted in one call: a per-image noise makes each row's input
+covariance its own ((4n + F)^2 values, F the free parameters), so a batch holds some
+tens of MB, whatever the size of the test set."""
+
+
 def board_predictions(
     bt: ModelBoardTest,
     model,
@@ -406,11 +412,13 @@ def board_predictions(
         if rows.size == 0:
             continue
         ql, qr = stencil_pixels(t, images, kind)
-        pred = predict_measurement_error(
-            model, measure_kind, ql, qr, noise=noise.of_rows(t.image[rows]),
-            param_cov=param_cov, **options,
-        )  # fmt: skip
-        out.fill(rows, pred)
+        for start in range(0, rows.size, ROW_BATCH):
+            sl = slice(start, start + ROW_BATCH)
+            pred = predict_measurement_error(
+                model, measure_kind, ql[sl], qr[sl], noise=noise.of_rows(t.image[rows[sl]]),
+                param_cov=param_cov, **options,
+            )  # fmt: skip
+            out.fill(rows[sl], pred)
     return out
 
 
