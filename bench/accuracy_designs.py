@@ -84,6 +84,13 @@ def _seeds(text: str) -> list[int]:
     return out
 
 
+def _finished(work: Path) -> set[int]:
+    """The seeds ``WORK/designs.jsonl`` holds: designs this script is done with."""
+    store = work / "designs.jsonl"
+    lines = store.read_text().splitlines() if store.exists() else []
+    return {json.loads(line)["seed"] for line in lines}
+
+
 def _run(*args: str) -> tuple[int, str, str]:
     done = subprocess.run([EXE, *args], capture_output=True, text=True)
     return done.returncode, done.stdout, done.stderr

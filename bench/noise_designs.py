@@ -32,11 +32,14 @@ the simulator's true corner pixels (issue 17's groundwork):
   independent corners leaves out and which the adjacent-corner segments of a board test
   feel.
 
-Writes the "noise-designs" section of docs/accuracy.md unless ``--no-write``.
+Each design's figures go to ``WORK/noise_designs.jsonl`` as it finishes (a rerun
+reuses them; ``--fresh`` recomputes). Writes the "noise-designs" section of
+docs/accuracy.md unless ``--no-write``.
 """
 
 from __future__ import annotations
 
+import json
 import statistics
 import sys
 from pathlib import Path
@@ -47,7 +50,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 from _common import ACCURACY, Report, script_parser  # noqa: E402
 from _samples import detection_errors  # noqa: E402
-from accuracy_designs import MIN_ZONE_N, STD_RATIO_LIMIT, _seeds  # noqa: E402
+from accuracy_designs import MIN_ZONE_N, STD_RATIO_LIMIT, _finished, _seeds  # noqa: E402
 
 SECTION = "noise-designs"
 MIN_CORNERS = 10  # an image half with fewer detected corners gives no noise figure
@@ -305,17 +308,28 @@ def main(argv=None) -> int:
     parser = script_parser(__doc__)
     parser.add_argument("work", type=Path, help="an accuracy_designs.py work folder")
     parser.add_argument("--designs", default="1-40", help="seeds, e.g. 1-40 or 1,5")
+    parser.add_argument("--fresh", action="store_true", help="recompute designs WORK has")
     args = parser.parse_args(argv)
     report = Report("bench/noise_designs.py", args, ACCURACY)
+    store = args.work / "noise_designs.jsonl"  # one line per design, kept between runs
+    done = {}
+    if store.exists() and not args.fresh:
+        done = {r["seed"]: r for r in map(json.loads, store.read_text().splitlines())}
     rows = {}
+    finished = _finished(args.work)
     for seed in _seeds(args.designs):
         stem = args.work / f"design_{seed:03d}"
-        if not stem.with_suffix(".h5").exists():
+        if seed in done:
+            rows[seed] = done[seed]
+            continue
+        if seed not in finished:  # accuracy_designs.py is not done with it yet
             continue
         r = design_noise(stem.with_suffix(".h5"), stem)
         if r is not None:
-            r.update(board_figures(stem.with_suffix(".h5"), stem))
+            r.update(board_figures(stem.with_suffix(".h5"), stem), seed=seed)
             rows[seed] = r
+            with store.open("a") as f:
+                f.write(json.dumps(r) + "\n")
             print(seed, r["zones"], r["neighbour"], flush=True)
     return report.finish({SECTION: section(rows, args.designs)})
 

@@ -16,7 +16,9 @@ move the point). Against
 the simulator's true distances: the share of the errors inside the predicted 2-sigma
 band and the RMS of error / predicted std (issue 17: 93-97 %, RMS z 0.9-1.1).
 
-Writes the "operator-designs" section of docs/accuracy.md unless ``--no-write``.
+Each design's distances go to ``WORK/operator_designs.jsonl`` as it finishes (a rerun
+reuses them; ``--fresh`` recomputes). Writes the "operator-designs" section of
+docs/accuracy.md unless ``--no-write``.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 from _common import ACCURACY, Report, Target, script_parser  # noqa: E402
 from _samples import endomeasure  # noqa: E402
-from accuracy_designs import _seeds  # noqa: E402
+from accuracy_designs import _finished, _seeds  # noqa: E402
 from accuracy_scene import band_figures  # noqa: E402
 
 SECTION = "operator-designs"
@@ -125,15 +127,27 @@ def main(argv=None) -> int:
     parser = script_parser(__doc__)
     parser.add_argument("work", type=Path, help="an accuracy_designs.py work folder")
     parser.add_argument("--designs", default="1-40", help="seeds, e.g. 1-40 or 1,5")
+    parser.add_argument("--fresh", action="store_true", help="recompute designs WORK has")
     args = parser.parse_args(argv)
     report = Report("bench/operator_designs.py", args, ACCURACY)
+    store = args.work / "operator_designs.jsonl"  # one line per design, kept between runs
+    done = {}
+    if store.exists() and not args.fresh:
+        done = {d["seed"]: d for d in map(json.loads, store.read_text().splitlines())}
     per_design, rows = {}, []
+    finished = _finished(args.work)
     for seed in _seeds(args.designs):
-        result = design_rows(seed, args.work)
-        if result is None or result[0].shape[0] == 0:
-            continue
-        r, refused = result
-        per_design[seed] = {**band_figures(r), "refused": refused}
+        if seed not in done:
+            if seed not in finished:  # accuracy_designs.py is not done with it yet
+                continue
+            result = design_rows(seed, args.work)
+            if result is None or result[0].shape[0] == 0:
+                continue
+            done[seed] = {"seed": seed, "rows": result[0].tolist(), "refused": result[1]}
+            with store.open("a") as f:
+                f.write(json.dumps(done[seed]) + "\n")
+        r = np.asarray(done[seed]["rows"])
+        per_design[seed] = {**band_figures(r), "refused": done[seed]["refused"]}
         rows.append(r)
         print(seed, {k: round(v, 3) for k, v in per_design[seed].items()}, flush=True)
     if not rows:
