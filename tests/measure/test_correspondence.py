@@ -661,9 +661,9 @@ def test_the_misfit_is_what_the_residual_holds_beyond_its_noise(rng):
     std = np.sqrt(gain**2 * s_ref**2 * _spline_noise_variance(ref)[0]
                   + s_t**2 * _spline_noise_variance(target)[0])  # fmt: skip
     noise = rng.normal(0.0, 1.0, n) * std
-    assert _measured_misfit(noise, gain, s_ref, s_t, ref, target) < 0.1 * s_t
+    assert _measured_misfit(noise, gain, s_ref, s_t, ref, target, 4) < 0.1 * s_t
     difference = 1.5 * np.sqrt(2.0) * np.sin(np.linspace(0, 40 * np.pi, n))  # RMS 1.5
-    got = _measured_misfit(noise + difference, gain, s_ref, s_t, ref, target)
+    got = _measured_misfit(noise + difference, gain, s_ref, s_t, ref, target, 4)
     assert got == pytest.approx(1.5, rel=0.05)
     # a noise-free, perfectly fitted patch has no misfit
-    assert _measured_misfit(np.zeros(n), gain, s_ref, s_t, ref, target) == 0.0
+    assert _measured_misfit(np.zeros(n), gain, s_ref, s_t, ref, target, 4) == 0.0

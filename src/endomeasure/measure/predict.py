@@ -204,13 +204,15 @@ class ImageNoiseByImage:
         so)."""
         return float(np.median(self.std)) if self.std.size else math.nan
 
-    def of_rows(self, images: np.ndarray) -> ImageNoise:
-        """The per-point noise (M, n, 4) of measurements in ``images`` (M,), for n points
-        filled in by :meth:`ImageNoise.covariance` (every point of a row alike)."""
+    def of_rows(self, images: np.ndarray) -> _RowNoise:
+        """The noise of measurements in ``images`` (M,) (index of the image each one lies
+        in): each point of a row at its image's noise, sized to the measurement's points
+        when its covariance is asked for."""
         return _RowNoise(self, np.asarray(images, dtype=np.int64))
 
     def to_dict(self, correlations: bool = True) -> dict[str, Any]:
-        """As :meth:`ImageNoise.to_dict` (no correlations), with the halves' spread."""
+        """As :meth:`ImageNoise.to_dict`, with the range of the images' std and the
+        median correlation of a point's two views (u, v)."""
         out: dict[str, Any] = {"sigma_px": self.sigma, "sigma_source": self.source}
         if correlations:
             out.update(rho_images=self.rho_images, rho_points=self.rho_points)

@@ -163,14 +163,14 @@ def board_predictions(bt, model, noise, **options):
     return predict(bt, model, _board_grids(bt), noise, **options)
 
 
-TEST_IMAGE_NOISE = "each test image half's corner scatter, median"
+TEST_IMAGE_NOISE = "each test image's noise from its neighbouring corners, median"
 """The ``sigma_source`` of a board-test prediction at its default image noise."""
 
 
 def board_test_noise(bt, model, noise: NoiseAssumptions, cm, what: str):
     """The image noise of a board-test prediction: ``noise``'s when it gives a sigma or
-    correlations, else each test image half's own noise
-    and the correlation of a corner's two views
+    correlations, else each test image's own noise per half and coordinate, and the
+    correlation of a corner's two views
     (:func:`~endomeasure.measure.board_runs.test_image_noise`): what the images show,
     without the calibration's misfit that its residual sigma holds."""
     from endomeasure.measure.board_runs import test_image_noise
