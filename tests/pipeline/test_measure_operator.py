@@ -231,3 +231,16 @@ def test_bad_operator_input_is_exit_2(scene_session, extra, message):
     result = runner.invoke(cli.app, [*args, *extra])
     assert result.exit_code == 2, result.stderr
     assert message in result.stderr and result.stderr.count("\n") == 1
+
+
+def test_the_search_spans_the_depths_the_calibration_saw():
+    # a probe calibrated at 30-130 mm (a random design's working range) is searched
+    # there, not over the default 8-60 mm, where its scene points have no match
+    from endomeasure.io.records import CalibratedModel
+    from endomeasure.measure.epipolar import DEPTH_RANGE_MM
+    from endomeasure.pipeline.measure import SEARCH_DEPTH_MARGIN, search_depths
+
+    seen = CalibratedModel("raytrace", None, None, None, depth_range_mm=(30.0, 130.0))
+    near, far = search_depths(seen)
+    assert near == 30.0 / SEARCH_DEPTH_MARGIN and far == 130.0 * SEARCH_DEPTH_MARGIN
+    assert search_depths(CalibratedModel("raytrace", None, None, None)) == DEPTH_RANGE_MM

@@ -110,11 +110,33 @@ class MatchRefusedError(GoalNotMetError):
         self.plot = plot
 
 
-def _match_other_half(model, image: np.ndarray, query: np.ndarray, half: Half, patch: int) -> list:
-    """Matches in the other half of operator points given in ``half``."""
+SEARCH_DEPTH_MARGIN = 2.0
+"""The automatic search covers the depths where the calibration saw the board, from
+the nearest / this to the farthest x this: where the user calibrated is where the probe
+works, and a match beyond the searched depths is not found at all (or another feature
+on the curve is). Without a stored depth range: the search's own default."""
+
+
+def search_depths(cm) -> tuple[float, float]:
+    """The depths (mm) the automatic search spans for the calibrated model ``cm``
+    (:data:`SEARCH_DEPTH_MARGIN`)."""
+    from endomeasure.measure.epipolar import DEPTH_RANGE_MM
+
+    if cm.depth_range_mm is None:
+        return DEPTH_RANGE_MM
+    near, far = cm.depth_range_mm
+    return (near / SEARCH_DEPTH_MARGIN, far * SEARCH_DEPTH_MARGIN)
+
+
+def _match_other_half(
+    model, image: np.ndarray, query: np.ndarray, half: Half, patch: int, depths
+) -> list:
+    """Matches in the other half of operator points given in ``half``, searched over
+    ``depths`` (mm)."""
     from endomeasure.measure.correspondence import MatchSettings, find_matches
 
-    return find_matches(model, image, query, half, MatchSettings(patch=patch))
+    settings = MatchSettings(patch=patch, depth_range_mm=tuple(map(float, depths)))
+    return find_matches(model, image, query, half, settings)
 
 
 def _refusal(matches: list, half: Half, plot) -> MatchRefusedError:
@@ -251,15 +273,18 @@ def _check_count(request: _Request, kind: str) -> int:
     return n
 
 
-def _pixel_pairs(model, request: _Request, image_pixels, patch: int, plot):
+def _pixel_pairs(cm, request: _Request, image_pixels, patch: int, plot):
     """Left and right pixels (n, 2) of every point, the search's matches (or None) and
-    the written plot (or None)."""
+    the written plot (or None), with the calibrated model ``cm``."""
+    model = cm.model
     query_half, given = request.query_half, request.given
     n = given[query_half].shape[0]
     _check_pixels(given[query_half], query_half, model, query_half.label)
     matches = written = None
     if request.search:
-        matches = _match_other_half(model, image_pixels, given[query_half], query_half, patch)
+        matches = _match_other_half(
+            model, image_pixels, given[query_half], query_half, patch, search_depths(cm)
+        )
         if plot is not None:
             from endomeasure.measure.plots import plot_matches
 
@@ -370,7 +395,7 @@ def measure_points(
         reader.image_info(image)  # an unknown image is a BadInputError listing the images
         cm = records.load_calibrated_model(reader, model_name, session)
         image_pixels = reader.image(image) if request.search else None
-    ql, qr, matches, written = _pixel_pairs(cm.model, request, image_pixels, patch, plot)
+    ql, qr, matches, written = _pixel_pairs(cm, request, image_pixels, patch, plot)
     tri = _triangulated(cm.model, model_name, ql, qr)
     value = measure(kind, tri.points)
     error, noise = _predicted(cm, kind, value, ql, qr, sigma, matches, request.query_half)
