@@ -105,7 +105,9 @@ def section(per_design: dict[int, dict], pooled: dict, designs: str) -> str:
     lines = [
         f"Designs {designs} with a usable raytrace calibration ({len(per_design)}), made by "
         "`python bench/operator_designs.py WORK` on an `accuracy_designs.py` work folder: "
-        f"{pooled['n']} mark-to-mark distances, **{100 * pooled['within']:.1f} % inside the "
+        f"{pooled['n']} mark-to-mark distances measured (and "
+        f"{sum(f['refused'] for f in per_design.values())} whose search refused a point), "
+        f"**{100 * pooled['within']:.1f} % inside the "
         f"predicted 2-sigma band, RMS z {pooled['rms_z']:.2f}** (mean z "
         f"{pooled['mean_z']:+.2f}; issue 17: {BAND_PCT[0]:g}-{BAND_PCT[1]:g} %, RMS z "
         f"{RMS_Z[0]:g}-{RMS_Z[1]:g}).",

@@ -110,22 +110,26 @@ class MatchRefusedError(GoalNotMetError):
         self.plot = plot
 
 
-SEARCH_DEPTH_MARGIN = 2.0
+SEARCH_DEPTH_MARGINS = (1.25, 2.0)
 """The automatic search covers the depths where the calibration saw the board, from
-the nearest / this to the farthest x this: where the user calibrated is where the probe
-works, and a match beyond the searched depths is not found at all (or another feature
-on the curve is). Without a stored depth range: the search's own default."""
+the nearest / the first to the farthest x the second: where the user calibrated is
+where the probe works, and a match beyond the searched depths is not found at all (or
+another feature on the curve is). The near end sets most of the curve's length in
+pixels (the disparity goes as 1 / depth), and a longer curve holds more look-alikes
+(at half the nearest depth a mark of the default preset's scene found a neighbouring
+mark as a second candidate), so the margin is smaller there. Without a stored depth
+range: the search's own default."""
 
 
 def search_depths(cm) -> tuple[float, float]:
     """The depths (mm) the automatic search spans for the calibrated model ``cm``
-    (:data:`SEARCH_DEPTH_MARGIN`)."""
+    (:data:`SEARCH_DEPTH_MARGINS`)."""
     from endomeasure.measure.epipolar import DEPTH_RANGE_MM
 
     if cm.depth_range_mm is None:
         return DEPTH_RANGE_MM
-    near, far = cm.depth_range_mm
-    return (near / SEARCH_DEPTH_MARGIN, far * SEARCH_DEPTH_MARGIN)
+    (near, far), (near_margin, far_margin) = cm.depth_range_mm, SEARCH_DEPTH_MARGINS
+    return (near / near_margin, far * far_margin)
 
 
 def _match_other_half(
