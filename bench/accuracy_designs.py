@@ -91,6 +91,30 @@ def _finished(work: Path) -> set[int]:
     return {json.loads(line)["seed"] for line in lines}
 
 
+def work_parser(doc: str):
+    """The command line of a script that reads this script's work folder: ``WORK``,
+    ``--designs`` and ``--fresh`` (recompute what its own store holds)."""
+    parser = script_parser(doc)
+    parser.add_argument("work", type=Path, help="an accuracy_designs.py work folder")
+    parser.add_argument("--designs", default=DEFAULT_DESIGNS, help="seeds, e.g. 1-40 or 1,5")
+    parser.add_argument("--fresh", action="store_true", help="recompute designs WORK has")
+    return parser
+
+
+def stored_designs(store: Path, fresh: bool = False) -> dict[int, dict]:
+    """The per-design records a script keeps in ``store`` (JSON lines, the last line of
+    a seed wins), or none with ``fresh``."""
+    if fresh or not store.exists():
+        return {}
+    return {r["seed"]: r for r in map(json.loads, store.read_text().splitlines())}
+
+
+def store_design(store: Path, record: dict) -> None:
+    """Append one design's record to ``store`` as it finishes (a cut run keeps it)."""
+    with store.open("a") as f:
+        f.write(json.dumps(record) + "\n")
+
+
 def _run(*args: str) -> tuple[int, str, str]:
     done = subprocess.run([EXE, *args], capture_output=True, text=True)
     return done.returncode, done.stdout, done.stderr

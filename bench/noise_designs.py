@@ -39,7 +39,6 @@ docs/accuracy.md unless ``--no-write``.
 
 from __future__ import annotations
 
-import json
 import statistics
 import sys
 from pathlib import Path
@@ -48,9 +47,17 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from _common import ACCURACY, Report, script_parser  # noqa: E402
+from _common import ACCURACY, Report  # noqa: E402
 from _samples import detection_errors  # noqa: E402
-from accuracy_designs import MIN_ZONE_N, STD_RATIO_LIMIT, _finished, _seeds  # noqa: E402
+from accuracy_designs import (  # noqa: E402
+    MIN_ZONE_N,
+    STD_RATIO_LIMIT,
+    _finished,
+    _seeds,
+    store_design,
+    stored_designs,
+    work_parser,
+)
 
 SECTION = "noise-designs"
 MIN_CORNERS = 10  # an image half with fewer detected corners gives no noise figure
@@ -305,16 +312,10 @@ def section(rows: dict[int, dict], designs: str) -> str:
 
 
 def main(argv=None) -> int:
-    parser = script_parser(__doc__)
-    parser.add_argument("work", type=Path, help="an accuracy_designs.py work folder")
-    parser.add_argument("--designs", default="1-40", help="seeds, e.g. 1-40 or 1,5")
-    parser.add_argument("--fresh", action="store_true", help="recompute designs WORK has")
-    args = parser.parse_args(argv)
+    args = work_parser(__doc__).parse_args(argv)
     report = Report("bench/noise_designs.py", args, ACCURACY)
     store = args.work / "noise_designs.jsonl"  # one line per design, kept between runs
-    done = {}
-    if store.exists() and not args.fresh:
-        done = {r["seed"]: r for r in map(json.loads, store.read_text().splitlines())}
+    done = stored_designs(store, args.fresh)
     rows = {}
     finished = _finished(args.work)
     for seed in _seeds(args.designs):
@@ -328,8 +329,7 @@ def main(argv=None) -> int:
         if r is not None:
             r.update(board_figures(stem.with_suffix(".h5"), stem), seed=seed)
             rows[seed] = r
-            with store.open("a") as f:
-                f.write(json.dumps(r) + "\n")
+            store_design(store, r)
             print(seed, r["zones"], r["neighbour"], flush=True)
     return report.finish({SECTION: section(rows, args.designs)})
 

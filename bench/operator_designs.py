@@ -33,9 +33,15 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from _common import ACCURACY, Report, Target, script_parser  # noqa: E402
+from _common import ACCURACY, Report, Target  # noqa: E402
 from _samples import endomeasure  # noqa: E402
-from accuracy_designs import _finished, _seeds  # noqa: E402
+from accuracy_designs import (  # noqa: E402
+    _finished,
+    _seeds,
+    store_design,
+    stored_designs,
+    work_parser,
+)
 from accuracy_scene import band_figures  # noqa: E402
 
 SECTION = "operator-designs"
@@ -126,16 +132,10 @@ def section(per_design: dict[int, dict], pooled: dict, designs: str) -> str:
 
 
 def main(argv=None) -> int:
-    parser = script_parser(__doc__)
-    parser.add_argument("work", type=Path, help="an accuracy_designs.py work folder")
-    parser.add_argument("--designs", default="1-40", help="seeds, e.g. 1-40 or 1,5")
-    parser.add_argument("--fresh", action="store_true", help="recompute designs WORK has")
-    args = parser.parse_args(argv)
+    args = work_parser(__doc__).parse_args(argv)
     report = Report("bench/operator_designs.py", args, ACCURACY)
     store = args.work / "operator_designs.jsonl"  # one line per design, kept between runs
-    done = {}
-    if store.exists() and not args.fresh:
-        done = {d["seed"]: d for d in map(json.loads, store.read_text().splitlines())}
+    done = stored_designs(store, args.fresh)
     per_design, rows = {}, []
     finished = _finished(args.work)
     for seed in _seeds(args.designs):
@@ -146,8 +146,7 @@ def main(argv=None) -> int:
             if result is None or result[0].shape[0] == 0:
                 continue
             done[seed] = {"seed": seed, "rows": result[0].tolist(), "refused": result[1]}
-            with store.open("a") as f:
-                f.write(json.dumps(done[seed]) + "\n")
+            store_design(store, done[seed])
         r = np.asarray(done[seed]["rows"])
         per_design[seed] = {**band_figures(r), "refused": done[seed]["refused"]}
         rows.append(r)
