@@ -43,6 +43,8 @@ ACCURACY_RUNS := \
 	"bench/accuracy_scene.py" \
 	"bench/match_precision.py" \
 	"bench/accuracy_designs.py --work $(ACCURACY_WORK)/designs --jobs 2" \
+	"bench/noise_designs.py $(ACCURACY_WORK)/designs" \
+	"bench/operator_designs.py $(ACCURACY_WORK)/designs" \
 	"bench/accuracy_split.py --work $(ACCURACY_WORK)/split" \
 	"bench/accuracy_rotation.py --poses 24 --designs 10 --seed 0"
 
