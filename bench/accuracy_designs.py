@@ -86,9 +86,7 @@ def _seeds(text: str) -> list[int]:
 
 def _finished(work: Path) -> set[int]:
     """The seeds ``WORK/designs.jsonl`` holds: designs this script is done with."""
-    store = work / "designs.jsonl"
-    lines = store.read_text().splitlines() if store.exists() else []
-    return {json.loads(line)["seed"] for line in lines}
+    return set(stored_designs(work / "designs.jsonl"))
 
 
 def work_parser(doc: str):
@@ -471,11 +469,7 @@ def main(argv=None) -> int:
     work = args.work or Path(tempfile.mkdtemp(prefix="designs_"))
     work.mkdir(parents=True, exist_ok=True)
     store = work / "designs.jsonl"
-    done = {}
-    if store.exists():
-        for line in store.read_text().splitlines():
-            r = json.loads(line)
-            done[r["seed"]] = r
+    done = stored_designs(store)
     if args.recalibrate:
         again = [s for s in seeds if s in done and "detection" in done[s]]
         kept = [{k: done[s][k] for k in DETECTED_KEYS if k in done[s]} for s in again]

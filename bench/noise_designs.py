@@ -61,7 +61,6 @@ from accuracy_designs import (  # noqa: E402
 
 SECTION = "noise-designs"
 MIN_CORNERS = 10  # an image half with fewer detected corners gives no noise figure
-MIN_RUNS = 8  # runs of three neighbouring corners for one image half's scatter
 
 
 def _spread(true: np.ndarray, estimate: np.ndarray) -> dict:
@@ -78,6 +77,7 @@ def _spread(true: np.ndarray, estimate: np.ndarray) -> dict:
 def _scatter(record, truth: dict) -> tuple[np.ndarray, np.ndarray]:
     """Per calibration image half: true noise and the scatter of its residuals (px per
     coordinate), from the stored calibration ``record``."""
+    from endomeasure.measure.board_runs import MIN_IMAGE_RUNS
     from endomeasure.solvers.verdict import scatter_floor
 
     a = record.arrays
@@ -93,7 +93,7 @@ def _scatter(record, truth: dict) -> tuple[np.ndarray, np.ndarray]:
             r = a["residuals"][sel]
             ok = np.all(np.isfinite(e), axis=1) & np.all(np.isfinite(r), axis=1)
             zeros = np.zeros(int(ok.sum()), dtype=np.int64)
-            s = scatter_floor(a["obs_board_points"][sel][ok], zeros, zeros, r[ok], MIN_RUNS)
+            s = scatter_floor(a["obs_board_points"][sel][ok], zeros, zeros, r[ok], MIN_IMAGE_RUNS)
             true.append(float(np.sqrt(np.mean(e[ok] ** 2))))
             scatter.append(s / np.sqrt(2.0))
     return np.array(true), np.array(scatter)

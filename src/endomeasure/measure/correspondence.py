@@ -837,8 +837,8 @@ def _photometric_design(template: np.ndarray, offsets: np.ndarray) -> np.ndarray
     ``a T + b + c . delta`` of the reference patch ``T`` at offsets ``delta``: gain,
     offset and a ramp. A ramp of the gain as well (``(d . delta) T``, for vignetting that
     scales the texture's contrast) was tried and left out: on an edge it mimics a shift,
-    and the marks of the default preset's and of random designs' scenes matched worse
-    with it (``bench/match_precision.py``)."""
+    and in a one-off trial the marks of the default preset's scene and of random design 2
+    matched worse with it (design 1's better), which no script reruns."""
     du, dv = offsets[:, 0], offsets[:, 1]
     return np.stack([template, np.ones(du.size), du, dv], axis=-1)
 

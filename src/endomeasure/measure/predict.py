@@ -178,6 +178,9 @@ class ImageNoiseByImage:
     rho : ndarray, shape (I, 2), optional
         Correlation of a point's u_L with its u_R, and of v_L with v_R, in image i (zero
         if not given). Read-only.
+    rho_images, rho_points : float
+        Always 0: the scalar correlations of :class:`ImageNoise`, which reports read;
+        this noise's correlations are ``rho``.
     """
 
     std: np.ndarray = dataclasses.field(compare=False)

@@ -115,10 +115,11 @@ SEARCH_DEPTH_MARGINS = (1.25, 2.0)
 the nearest / the first to the farthest x the second: where the user calibrated is
 where the probe works, and a match beyond the searched depths is not found at all (or
 another feature on the curve is). The near end sets most of the curve's length in
-pixels (the disparity goes as 1 / depth), and a longer curve holds more look-alikes
-(at half the nearest depth a mark of the default preset's scene found a neighbouring
-mark as a second candidate), so the margin is smaller there. Without a stored depth
-range: the search's own default."""
+pixels (the disparity goes as 1 / depth), and a longer curve holds more look-alikes, so
+the margin is smaller there: at half the nearest depth a mark of the default preset's
+scene found a neighbouring mark as a second candidate, and on the 39 random designs'
+scenes (``bench/operator_designs.py``) more distances were refused as ambiguous than
+with 1.25. Without a stored depth range: the search's own default."""
 
 
 def search_depths(cm) -> tuple[float, float]:

@@ -97,7 +97,6 @@ def scatter_floor(
         Corners in the board frame (on a square grid, z = 0).
     image, half : ndarray, shape (K,), int
     residuals : ndarray, shape (K, 2), px
-        Or (K, 1): one coordinate, whose RMS noise the floor then is.
     """
     total, runs = 0.0, 0
     keys = np.asarray(image, dtype=np.int64) * 2 + np.asarray(half, dtype=np.int64)
