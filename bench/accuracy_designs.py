@@ -175,15 +175,16 @@ def _board_figures(session: Path, folder: Path) -> dict:
     """The raytrace board test: worst zone figures (n >= 30) on the detected corners and
     the fraction of the test corners measured; the same on the test set's true pixels
     (the calibration's own error, no image noise); and per zone the mean error the image
-    noise alone predicts (``predict-error --board-test --no-calibration`` at its default
-    noise: the unscented transform at the ideal board's pixels)."""
+    noise alone predicts (``predict-error --board-test --no-calibration --no-model-error`` at
+    its default noise: the unscented transform at the ideal board's pixels)."""
     from endomeasure.pipeline.measure import board_test
     from endomeasure.pipeline.predict import NoiseAssumptions, predict_board_test
 
     m = board_test(session, "raytrace", store=False).models["raytrace"]
     measured = float(np.mean(m.corner_status == 0)) if m.corner_status.size else float("nan")
     true_px = truth_board_test(session, folder, defaults.ZONE_MM, models=["raytrace"])["raytrace"]
-    pred = predict_board_test(session, "raytrace", NoiseAssumptions(calibration=False), store=False)
+    alone = NoiseAssumptions(calibration=False, model_error=False)
+    pred = predict_board_test(session, "raytrace", alone, store=False)
     noise = [
         {
             "kind": z["kind"], "zone_start": z["zone_start"], "n": z["n"],

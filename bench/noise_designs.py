@@ -24,9 +24,9 @@ the simulator's true corner pixels (issue 17's groundwork):
 - the board test's zones with n >= 30 whose actual std is within +-25 % of the predicted
   one, predicted three ways: with the calibration's residual sigma for every point (the
   earlier default), with the default (each test image's own measured noise and the
-  correlation of a corner's two views), and with each test image's *true* noise and
-  correlation (from the simulator's corner pixels: what no noise model independent from
-  corner to corner can beat);
+  correlation of a corner's two views, and the calibration's model misfit), and with each
+  test image's *true* noise and correlation and the model misfit (from the simulator's
+  corner pixels: what no noise model independent from corner to corner can beat);
 - the correlation of neighbouring corners' true disparity errors (u_L - u_R) along the
   board's rows and along its columns (over every test image's pairs), which a model of
   independent corners leaves out and which the adjacent-corner segments of a board test
@@ -140,13 +140,14 @@ def design_noise(session: Path, folder: Path) -> dict | None:
     }
 
 
-def _zones_within(bt, cm, noise) -> tuple[int, int]:
-    """(zones with n >= 30 whose actual std is within +-25 % of the predicted, zones)."""
+def _zones_within(bt, cm, noise, misfit=None) -> tuple[int, int]:
+    """(zones with n >= 30 whose actual std is within +-25 % of the predicted, zones), with
+    the calibration covariance and the model misfit ``misfit``."""
     from endomeasure import defaults
     from endomeasure.measure.board_runs import prediction_zones
     from endomeasure.pipeline.predict import board_predictions
 
-    pred = board_predictions(bt, cm.model, noise, param_cov=cm.param_cov)
+    pred = board_predictions(bt, cm.model, noise, param_cov=cm.param_cov, misfit=misfit)
     zones = [z for z in prediction_zones(bt, pred, defaults.ZONE_MM) if z["n"] >= MIN_ZONE_N]
     close = sum(abs(z["actual_std"] / z["predicted_std"] - 1.0) <= STD_RATIO_LIMIT for z in zones)
     return close, len(zones)
@@ -218,8 +219,12 @@ def board_figures(session: Path, folder: Path) -> dict | None:
         "test_scatter": _spread(std.ravel(), measured.std.ravel()),
         "zones": {
             "residual": _zones_within(bt, cm, ImageNoise(cm.sigma_px)),
-            "default": _zones_within(bt, cm, ImageNoiseByImage(measured.std, "", measured.rho)),
-            "truth": _zones_within(bt, cm, ImageNoiseByImage(std, "", np.clip(rho, -1, 1))),
+            "default": _zones_within(
+                bt, cm, ImageNoiseByImage(measured.std, "", measured.rho), cm.misfit
+            ),
+            "truth": _zones_within(
+                bt, cm, ImageNoiseByImage(std, "", np.clip(rho, -1, 1)), cm.misfit
+            ),
         },
         "neighbour": _neighbour_correlation(disparity, cols),
     }
@@ -268,8 +273,8 @@ def section(rows: dict[int, dict], designs: str) -> str:
               for k in ("residual", "default", "truth")}  # fmt: skip
     ways = (
         ("residual", "the calibration's residual sigma, every point alike"),
-        ("default", "`predict-error`'s default: each test image's measured noise"),
-        ("truth", "each test image's true noise and correlation (the ceiling)"),
+        ("default", "`predict-error`'s default: each test image's measured noise, model misfit"),
+        ("truth", "each test image's true noise and correlation, model misfit (the ceiling)"),
     )
     lines += [
         "",

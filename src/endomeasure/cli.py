@@ -932,9 +932,8 @@ def _render_measurement(console: Console, r: Any) -> None:
         f"+- {e.ci95:.4f} {r.unit} (95%), predicted bias {e.bias:+.4f} {r.unit}"
     )
     console.print(
-        f"uncertainty: image noise {e.std_image:.4f}, calibration {e.std_calibration:.4f} "
-        f"{r.unit} (sigma {_sigma_text(r.noise.sigma)} from {r.noise.source}; "
-        f"{r.method.upper()})"
+        f"uncertainty: {_budget_text(e)} {r.unit} (sigma {_sigma_text(r.noise.sigma)} from "
+        f"{r.noise.source}; {r.method.upper()})"
     )
     if r.warning:
         console.print(
@@ -1017,6 +1016,13 @@ def predict_error(
         bool,
         typer.Option("--no-calibration", help="Leave the calibration covariance out."),
     ] = False,
+    no_model_error: Annotated[
+        bool,
+        typer.Option(
+            "--no-model-error",
+            help="Leave out the model misfit the calibration residuals show beyond noise.",
+        ),
+    ] = False,
     board_test: Annotated[
         bool, typer.Option("--board-test", help="Predicted vs actual board-test errors.")
     ] = False,
@@ -1075,6 +1081,7 @@ def predict_error(
         rho_points=rho_points,
         method=method,
         calibration=not no_calibration,
+        model_error=not no_model_error,
         n_samples=samples,
     )
     if board_test:
@@ -1115,6 +1122,14 @@ def predict_error(
         _render_map(console, r)
 
 
+def _budget_text(e: Any) -> str:
+    """The std's parts of a PredictedError that were propagated: image noise,
+    calibration, model misfit."""
+    parts = (("image noise", e.std_image), ("calibration", e.std_calibration),
+             ("model", e.std_model))  # fmt: skip
+    return ", ".join(f"{name} {v:.4f}" for name, v in parts if v == v)
+
+
 def _noise_text(noise: Any) -> str:
     return (
         f"sigma {_sigma_text(noise.sigma)} ({noise.source}), rho images {noise.rho_images:g}, "
@@ -1126,8 +1141,8 @@ def _render_stored_prediction(console: Console, r: Any) -> None:
     e = r.error
     console.print(
         f"[bold]{r.measurement}: {r.kind} = {e.value:.4f} {r.unit}[/bold] ({r.model}); "
-        f"predicted bias {e.bias:+.4f}, std {e.std:.4f} {r.unit} (image {e.std_image:.4f}, "
-        f"calibration {e.std_calibration:.4f}), 95% +-{e.ci95:.4f} = "
+        f"predicted bias {e.bias:+.4f}, std {e.std:.4f} {r.unit} ({_budget_text(e)}), "
+        f"95% +-{e.ci95:.4f} = "
         f"{e.relative_percent:.2f}% of the value; {r.method.upper()}, {_noise_text(r.noise)}"
     )
 

@@ -195,6 +195,10 @@ class CalibratedModel:
     verdict : str
         The calibration's verdict (``ok``, ``warning``, ``failed``; ``unjudged`` for
         models stored without one, e.g. by an earlier version).
+    misfit : ModelMisfit or None
+        What the calibration's residuals hold beyond noise
+        (:func:`~endomeasure.solvers.misfit.fit_misfit`), measured on loading from the
+        stored residuals; None where they do not allow it.
     """
 
     name: str
@@ -203,6 +207,7 @@ class CalibratedModel:
     sigma_px: float | None
     depth_range_mm: tuple[float, float] | None = None
     verdict: str = "unjudged"
+    misfit: Any = None
 
 
 def stored_verdict(record: ModelRecord) -> tuple[str, list[str]]:
@@ -265,8 +270,23 @@ def load_calibrated_model(
         else None
     )
     return CalibratedModel(
-        name, model, cov, sigma, _calibration_depths(record), stored_verdict(record)[0]
-    )
+        name, model, cov, sigma, _calibration_depths(record), stored_verdict(record)[0],
+        _calibration_misfit(record),
+    )  # fmt: skip
+
+
+_MISFIT_ARRAYS = ("obs_board_points", "obs_image", "obs_half", "obs_pixels", "residuals")
+
+
+def _calibration_misfit(record: ModelRecord):
+    """The model misfit of a calibration record's inlier residuals, or None."""
+    from endomeasure.solvers.misfit import fit_misfit
+
+    a = record.arrays
+    if not all(k in a for k in _MISFIT_ARRAYS):
+        return None
+    use = np.asarray(a["inliers"]).astype(bool) if "inliers" in a else slice(None)
+    return fit_misfit(*(np.asarray(a[k])[use] for k in _MISFIT_ARRAYS))
 
 
 def _calibration_depths(record: ModelRecord) -> tuple[float, float] | None:
@@ -328,6 +348,7 @@ def measurement_record(name: str, report) -> Record:
             "std": e.std,
             "std_image": e.std_image,
             "std_calibration": e.std_calibration,
+            "std_model": e.std_model,
             "ci95": e.ci95,
             "relative_percent": e.relative_percent,
             "warn_percent": float(report.warn_percent),
@@ -345,7 +366,9 @@ def measurement_record(name: str, report) -> Record:
             **_match_arrays(matches, report.noise),
         },
         units={
-            **dict.fromkeys(("value", "bias", "std", "std_image", "std_calibration", "ci95"), unit),
+            **dict.fromkeys(
+                ("value", "bias", "std", "std_image", "std_calibration", "std_model", "ci95"), unit
+            ),
             "relative_percent": "%",
             "warn_percent": "%",
             "sigma_px": "px",
@@ -486,7 +509,7 @@ def board_test_fields(record: Record) -> dict[str, Any]:
 # ----- prediction records -----------------------------------------------------------------------
 
 
-_PREDICTED_ROW_ARRAYS = ("bias", "std", "std_image", "std_calibration", "value")
+_PREDICTED_ROW_ARRAYS = ("bias", "std", "std_image", "std_calibration", "std_model", "value")
 """The arrays of a board-test prediction record, one entry per board-test row."""
 
 
@@ -501,6 +524,7 @@ def board_prediction_record(report) -> Record:
             "method": report.method,
             **report.noise.to_dict(),
             "calibration": bool(report.calibration),
+            "model_error": bool(report.model_error),
             "zone_mm": report.zone_mm,
             "within_band": report.within_band,
             "zones": json.dumps(report.zones),

@@ -359,12 +359,6 @@ def _shrunk_correlations(products: np.ndarray, runs: np.ndarray) -> np.ndarray:
     return rho
 
 
-ROW_BATCH = 1024
-"""Board-test rows predicted in one call: a per-image noise makes each row's input
-covariance its own ((4n + F)^2 values, F the free parameters), so a batch holds some
-tens of MB, whatever the size of the test set."""
-
-
 def board_predictions(
     bt: ModelBoardTest,
     model,
@@ -372,6 +366,7 @@ def board_predictions(
     noise: ImageNoise | ImageNoiseByImage,
     *,
     param_cov: np.ndarray | None = None,
+    misfit=None,
     at: str = "board",
     **options,
 ) -> dict:
@@ -382,8 +377,9 @@ def board_predictions(
 
     ``noise``: an :class:`~endomeasure.measure.predict.ImageNoise`, or an
     :class:`~endomeasure.measure.predict.ImageNoiseByImage` over ``bt.images`` (e.g.
-    :func:`test_image_noise`). ``param_cov`` and ``options`` (``method``, ...): as in
-    :func:`~endomeasure.measure.predict.predict_measurement_error`.
+    :func:`test_image_noise`). ``param_cov``, ``misfit`` and ``options`` (``method``,
+    ...): as in :func:`~endomeasure.measure.predict.predict_measurement_error`; rows go in
+    batches of :data:`~endomeasure.measure.predict.ROW_BATCH`.
 
     ``at='board'`` predicts at the pixels of the ideal board at its estimated pose
     (:func:`ideal_board_pixels`), ``at='detections'`` at the detected pixels. The first
@@ -397,7 +393,7 @@ def board_predictions(
     PredictedErrors
         Arrays (M,), one entry per row of ``bt.table``.
     """
-    from endomeasure.measure.predict import PredictedErrors, predict_measurement_error
+    from endomeasure.measure.predict import ROW_BATCH, PredictedErrors, predict_measurement_error
 
     t = bt.table
     images = []
@@ -416,7 +412,7 @@ def board_predictions(
             sl = slice(start, start + ROW_BATCH)
             pred = predict_measurement_error(
                 model, measure_kind, ql[sl], qr[sl], noise=noise.of_rows(t.image[rows[sl]]),
-                param_cov=param_cov, **options,
+                param_cov=param_cov, misfit=misfit, **options,
             )  # fmt: skip
             out.fill(rows[sl], pred)
     return out
@@ -429,7 +425,6 @@ def prediction_zones(bt: ModelBoardTest, predicted, zone_mm: float) -> list[dict
     of ``bt.table``. Zones with fewer than two measurements are left out.
     """
     bias, std = predicted.bias, predicted.std
-    std_img, std_cal = predicted.std_image, predicted.std_calibration
     t = bt.table
     board_of_row = np.asarray(bt.board, dtype=str)[t.image]
     ok = np.isfinite(t.error) & np.isfinite(std) & np.isfinite(t.z_mean)
@@ -453,15 +448,20 @@ def prediction_zones(bt: ModelBoardTest, predicted, zone_mm: float) -> list[dict
                     "actual_std": actual_std,
                     "predicted_mean": float(np.mean(b)),
                     "predicted_std": pred_std,
-                    "predicted_std_image": float(np.sqrt(np.mean(std_img[sel] ** 2))),
-                    "predicted_std_calibration": float(np.sqrt(np.mean(std_cal[sel] ** 2)))
-                    if np.all(np.isfinite(std_cal[sel]))
-                    else None,
+                    **{
+                        f"predicted_{part}": _rms_or_none(getattr(predicted, part)[sel])
+                        for part in ("std_image", "std_calibration", "std_model")
+                    },
                     "std_ratio": actual_std / pred_std if pred_std > 0 else None,
                     "within_band": float(np.mean(np.abs(e - b) <= BAND_SIGMAS * s)),
                 }
             )
     return rows
+
+
+def _rms_or_none(values: np.ndarray) -> float | None:
+    """The RMS of a zone's predicted parts, None for a part that was not propagated."""
+    return float(np.sqrt(np.mean(values**2))) if np.all(np.isfinite(values)) else None
 
 
 def within_band(bt: ModelBoardTest, bias: np.ndarray, std: np.ndarray) -> float:

@@ -36,9 +36,11 @@ from endomeasure.solvers.uncertainty import (
 
 if TYPE_CHECKING:
     from endomeasure.models.base import CameraModel
+    from endomeasure.solvers.misfit import ModelMisfit
 
 __all__ = [
     "PredictedErrors",
+    "ROW_BATCH",
     "TEMPLATES",
     "Z95",
     "ErrorMap",
@@ -141,18 +143,20 @@ class ImageNoise:
         :class:`ImageNoiseByImage`)."""
         return self
 
-    def covariance(self, n_points: int, param_cov: np.ndarray | None = None):
+    def covariance(self, n_points: int, param_cov=None, model_cov=None):
         """The input covariance of ``n_points`` points and its blocks
-        (:func:`~endomeasure.solvers.uncertainty.input_covariance`)."""
+        (:func:`~endomeasure.solvers.uncertainty.input_covariance`, which takes the
+        parameters' and the model misfit's covariance)."""
         if self.pixel_std is None:
             return input_covariance(n_points, self.sigma, self.rho_images, self.rho_points,
-                                    param_cov)  # fmt: skip
+                                    param_cov, model_cov=model_cov)  # fmt: skip
         if self.pixel_std.shape[-2] != n_points:
             raise BadInputError(
                 f"the image noise has a pixel_std for {self.pixel_std.shape[-2]} points, the "
                 f"measurement has {n_points}"
             )
-        return input_covariance(n_points, None, param_cov=param_cov, pixel_std=self.pixel_std)
+        return input_covariance(n_points, None, param_cov=param_cov, pixel_std=self.pixel_std,
+                                model_cov=model_cov)  # fmt: skip
 
     def to_dict(self, correlations: bool = True) -> dict[str, Any]:
         """The report fields ``sigma_px``, ``sigma_source`` (and ``rho_images``,
@@ -232,21 +236,28 @@ class _RowNoise:
     by_image: ImageNoiseByImage
     images: np.ndarray
 
-    def covariance(self, n_points: int, param_cov: np.ndarray | None = None):
+    def covariance(self, n_points: int, param_cov=None, model_cov=None):
         std = self.by_image.std[self.images][:, None, :]
         rho = self.by_image.rho[self.images][:, None, :]
         return input_covariance(
             n_points, None, param_cov=param_cov,
-            pixel_std=np.repeat(std, n_points, axis=1), pixel_rho=rho,
+            pixel_std=np.repeat(std, n_points, axis=1), pixel_rho=rho, model_cov=model_cov,
         )  # fmt: skip
 
 
 def image_noise(
-    given, residual_sigma: float | None, what: str, *, rho_images=0.0, rho_points=0.0
+    given,
+    residual_sigma: float | None,
+    what: str,
+    *,
+    rho_images=0.0,
+    rho_points=0.0,
+    misfit: ModelMisfit | None = None,
 ) -> ImageNoise:
     """The image noise of a prediction: ``given`` (one number, or u and v, px), or else a
-    calibration's residual sigma (px); ``what`` names the model in the error when it has
-    none."""
+    calibration's residual sigma (px), less the model misfit it holds when ``misfit`` is
+    known (that part is propagated as the model error); ``what`` names the model in the
+    error when it has none."""
     if given is not None:
         return ImageNoise(given, "given", rho_images, rho_points)
     if residual_sigma is None:
@@ -254,6 +265,9 @@ def image_noise(
             f"{what} carries no calibration residuals to estimate the image noise",
             hint="give --sigma PX (or U,V)",
         )
+    if misfit is not None and misfit.present:
+        return ImageNoise(misfit.noise_sigma, "calibration residuals less the model misfit",
+                          rho_images, rho_points)  # fmt: skip
     return ImageNoise(residual_sigma, "calibration residuals", rho_images, rho_points)
 
 
@@ -267,13 +281,15 @@ def accuracy_index(value: float, bias: float, std: float) -> float:
 @dataclasses.dataclass(frozen=True)
 class PredictedError:
     """One measurement's value with its predicted bias and standard deviation, and the
-    standard deviation's budget by source (image noise, calibration), in the kind's unit."""
+    standard deviation's budget by source (image noise, calibration, model misfit; NaN for
+    a source not propagated), in the kind's unit."""
 
     value: float
     bias: float
     std: float
     std_image: float
     std_calibration: float
+    std_model: float = math.nan
 
     @property
     def ci95(self) -> float:
@@ -296,6 +312,7 @@ class PredictedError:
             std,
             parts.get("image", math.nan),
             parts.get("calibration", math.nan),
+            parts.get("model", math.nan),
         )
 
     def to_dict(self) -> dict[str, float]:
@@ -305,13 +322,19 @@ class PredictedError:
             "std": self.std,
             "std_image": self.std_image,
             "std_calibration": self.std_calibration,
+            "std_model": self.std_model,
             "ci95": self.ci95,
             "relative_percent": self.relative_percent,
         }
 
 
 def measurement_function(
-    model: CameraModel, kind: str, n_points: int, *, with_params: bool = False
+    model: CameraModel,
+    kind: str,
+    n_points: int,
+    *,
+    with_params: bool = False,
+    with_offsets: bool = False,
 ) -> MeasurementFunction:
     """The black box ``f`` of a measurement kind (see :class:`MeasurementFunction`)."""
     spec = kind_spec(kind)
@@ -322,7 +345,9 @@ def measurement_function(
             + ("" if spec.max_points == spec.min_points else " or more")
             + " points",
         )
-    return MeasurementFunction(model, spec.function, n_points, with_params=with_params)
+    return MeasurementFunction(
+        model, spec.function, n_points, with_params=with_params, with_offsets=with_offsets
+    )
 
 
 def predict_measurement_error(
@@ -333,6 +358,7 @@ def predict_measurement_error(
     *,
     noise: ImageNoise,
     param_cov: np.ndarray | None = None,
+    misfit: ModelMisfit | None = None,
     method: str = "ut",
     **options,
 ) -> Propagation:
@@ -350,6 +376,9 @@ def predict_measurement_error(
     param_cov : ndarray, shape (F, F), optional
         Covariance of the model's free parameters (F = ``model.free_mask.sum()``);
         without it only image noise is propagated.
+    misfit : ModelMisfit, optional
+        The calibration's model misfit, propagated as the input block ``model`` (when it
+        is present).
     method : {'ut', 'linear', 'mc'}
     **options
         Passed to the propagator (``alpha``, ``beta``, ``kappa``; ``n_samples``,
@@ -374,8 +403,10 @@ def predict_measurement_error(
                 f"the parameter covariance must be {f_free}x{f_free} for the {model.NAME} "
                 f"model's free parameters, got {np.shape(param_cov)}"
             )
-    f = measurement_function(model, kind, n, with_params=param_cov is not None)
-    cov, blocks = noise.covariance(n, param_cov)
+    offsets = misfit is not None and misfit.present
+    f = measurement_function(model, kind, n, with_params=param_cov is not None,
+                             with_offsets=offsets)  # fmt: skip
+    cov, blocks = noise.covariance(n, param_cov, misfit.covariance(ql) if offsets else None)
     return propagate(f, f.inputs(ql, pixels_right), cov, method, blocks=blocks, **options)
 
 
@@ -458,6 +489,7 @@ class PredictedErrors(NamedTuple):
     std: np.ndarray
     std_image: np.ndarray
     std_calibration: np.ndarray
+    std_model: np.ndarray
 
     @classmethod
     def empty(cls, m: int) -> PredictedErrors:
@@ -469,8 +501,15 @@ class PredictedErrors(NamedTuple):
         self.value[rows], self.bias[rows], self.std[rows] = pred.value, pred.bias, pred.std
         if "image" in pred.parts:
             self.std_image[rows] = pred.parts["image"][1]
-        if "calibration" in pred.parts:
-            self.std_calibration[rows] = pred.parts["calibration"][1]
+        for name, out in (("calibration", self.std_calibration), ("model", self.std_model)):
+            if name in pred.parts:
+                out[rows] = pred.parts[name][1]
+
+
+ROW_BATCH = 1024
+"""Measurements predicted in one call where each has its own input covariance (a model
+misfit, a per-image noise): ``(4n + F)^2`` values each (F free parameters), so a batch
+holds some tens of MB, whatever the number of measurements."""
 
 
 class ErrorMap(NamedTuple):
@@ -493,6 +532,7 @@ def error_map(
     *,
     noise: ImageNoise,
     param_cov: np.ndarray | None = None,
+    misfit: ModelMisfit | None = None,
     method: str = "ut",
     **options,
 ) -> ErrorMap:
@@ -508,8 +548,9 @@ def error_map(
         One of :data:`TEMPLATES`.
     size_mm : float
         Template size (segment length, square side).
-    noise, param_cov, method, **options
-        As in :func:`predict_measurement_error`.
+    noise, param_cov, misfit, method, **options
+        As in :func:`predict_measurement_error`; a misfit makes every template's input
+        covariance its own, so the templates go in batches of :data:`ROW_BATCH`.
 
     Returns
     -------
@@ -524,11 +565,14 @@ def error_map(
     visible = np.all((pl.status == Status.OK) & (pr.status == Status.OK), axis=1)
     true = float(evaluate(kind, template_points(template, np.zeros((1, 3)), size_mm))[0])
     errors = PredictedErrors.empty(K)
-    if visible.any():
+    rows = np.flatnonzero(visible)
+    step = ROW_BATCH if misfit is not None and misfit.present else max(rows.size, 1)
+    for start in range(0, rows.size, step):
+        batch = rows[start : start + step]
         res = predict_measurement_error(
-            model, kind, pl.pixels[visible], pr.pixels[visible], noise=noise,
-            param_cov=param_cov, method=method, **options,
+            model, kind, pl.pixels[batch], pr.pixels[batch], noise=noise,
+            param_cov=param_cov, misfit=misfit, method=method, **options,
         )  # fmt: skip
-        errors.fill(visible, res)
+        errors.fill(batch, res)
     centres = np.asarray(centres, dtype=np.float64)
     return ErrorMap(centres, true, visible, errors, template, float(size_mm))

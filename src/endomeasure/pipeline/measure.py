@@ -334,8 +334,9 @@ def _predicted(cm, kind: str, value: float, ql, qr, sigma, matches, query_half: 
         pixel_std[:, 1 if query_half is Half.LEFT else 0] = [m.precision_px for m in matches]
         noise = ImageNoise.per_point(pixel_std, f"match precision, {query_half.label} pixels exact")
     else:
-        noise = image_noise(sigma, cm.sigma_px, f"model {cm.name!r}")
-    pred = predict(cm.model, kind, ql, qr, noise=noise, param_cov=cm.param_cov, method=METHOD)
+        noise = image_noise(sigma, cm.sigma_px, f"model {cm.name!r}", misfit=cm.misfit)
+    pred = predict(cm.model, kind, ql, qr, noise=noise, param_cov=cm.param_cov,
+                   misfit=cm.misfit, method=METHOD)  # fmt: skip
     error = PredictedError.of(pred)
     return dataclasses.replace(error, value=value), noise
 

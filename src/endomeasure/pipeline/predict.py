@@ -70,6 +70,10 @@ class NoiseAssumptions:
     method : {'ut', 'linear', 'mc'}
     calibration : bool
         Whether the calibration covariance joins the input (when the model has one).
+    model_error : bool
+        Whether the calibration's model misfit joins the input (when its residuals show
+        one, :mod:`endomeasure.solvers.misfit`). The default image noise leaves the misfit
+        out either way: it is noise only.
     n_samples : int or None
         Monte Carlo samples (``mc`` only; default :data:`MC_SAMPLES`).
     seed : int
@@ -81,6 +85,7 @@ class NoiseAssumptions:
     rho_points: float = 0.0
     method: str = "ut"
     calibration: bool = True
+    model_error: bool = True
     n_samples: int | None = None
     seed: int = 0
 
@@ -94,22 +99,32 @@ class NoiseAssumptions:
 
     def image_noise(self, cm, what: str):
         """The :class:`~endomeasure.measure.predict.ImageNoise` to use: ``sigma``, or the
-        calibrated model ``cm``'s residual sigma; ``what`` names the model in errors."""
+        calibrated model ``cm``'s residual sigma less its model misfit; ``what`` names the
+        model in errors."""
         from endomeasure.measure.predict import image_noise
 
         residual = None if cm is None else cm.sigma_px
+        misfit = None if cm is None else cm.misfit
         return image_noise(self.sigma, residual, what, rho_images=self.rho_images,
-                           rho_points=self.rho_points)  # fmt: skip
+                           rho_points=self.rho_points, misfit=misfit)  # fmt: skip
 
-    def propagation(self, param_cov) -> dict[str, Any]:
+    def propagation(self, cm) -> dict[str, Any]:
         """The predictors' keywords besides the image noise
-        (:func:`~endomeasure.measure.predict.predict_measurement_error`): ``param_cov``
-        (None without ``calibration``), ``method`` and its Monte Carlo options."""
+        (:func:`~endomeasure.measure.predict.predict_measurement_error`) for the
+        calibrated model ``cm`` (None for a model file): ``param_cov`` (None without
+        ``calibration``), ``misfit`` (None without ``model_error``), ``method`` and its
+        Monte Carlo options."""
         options: dict[str, Any] = {}
         if self.method == "mc":
             options = {"n_samples": int(self.n_samples or MC_SAMPLES), "seed": int(self.seed)}
-        cov = param_cov if self.calibration else None
-        return {"param_cov": cov, "method": self.method, **options}
+        cov = cm.param_cov if cm is not None and self.calibration else None
+        misfit = cm.misfit if cm is not None and self.model_error else None
+        return {"param_cov": cov, "misfit": misfit, "method": self.method, **options}
+
+    def model_error_in(self, cm) -> bool:
+        """Whether a prediction with ``cm`` propagates a model misfit."""
+        return bool(self.model_error and cm is not None and cm.misfit is not None
+                    and cm.misfit.present)  # fmt: skip
 
 
 # ----- board test --------------------------------------------------------------------------------
@@ -132,6 +147,8 @@ class BoardPredictionReport:
     plot: str | None
     rows: Any = dataclasses.field(repr=False)
     """The PredictedErrors of every board-test row."""
+    model_error: bool = False
+    """Whether the calibration's model misfit was propagated."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -140,6 +157,7 @@ class BoardPredictionReport:
             "method": self.method,
             **self.noise.to_dict(),
             "calibration": self.calibration,
+            "model_error": self.model_error,
             "zone_mm": self.zone_mm,
             "zones": self.zones,
             "within_band": self.within_band,
@@ -225,7 +243,7 @@ def predict_board_test(
             noise.image_noise(cm, f"model {model!r}")  # checked before any work
         bt, new_record = _board_test_of(session, reader, model, cm, zone)
     image_noise = board_test_noise(bt, cm.model, noise, cm, f"model {model!r}")
-    pred = board_predictions(bt, cm.model, image_noise, **noise.propagation(cm.param_cov))
+    pred = board_predictions(bt, cm.model, image_noise, **noise.propagation(cm))
     zones = prediction_zones(bt, pred, zone)
     written = None
     if plot is not None:
@@ -234,7 +252,7 @@ def predict_board_test(
         written = str(plot_predicted_vs_actual(zones, plot))
     report = BoardPredictionReport(
         str(session), model, noise.method, image_noise, noise.calibration, zone, zones,
-        within_band(bt, pred.bias, pred.std), written, pred,
+        within_band(bt, pred.bias, pred.std), written, pred, noise.model_error_in(cm),
     )  # fmt: skip
     # one edit for both records: the session is copied once, and a failure stores neither
     records = [] if new_record is None else [new_record]
@@ -310,7 +328,7 @@ def predict_stored_measurement(
         stored.pixels_left,
         stored.pixels_right,
         noise=image_noise,
-        **noise.propagation(cm.param_cov),
+        **noise.propagation(cm),
     )
     report = MeasurementPredictionReport(
         str(session), measurement, name, stored.kind, kind_spec(stored.kind).unit,
@@ -338,6 +356,7 @@ class MapReport:
     plot: str | None
     csv: str | None
     error_map: Any = dataclasses.field(repr=False)  # ErrorMap
+    model_error: bool = False
 
     @property
     def template(self) -> str:
@@ -361,6 +380,7 @@ class MapReport:
             "method": self.method,
             **self.noise.to_dict(),
             "calibration": self.calibration,
+            "model_error": self.model_error,
             "depths": list(self.depths),
             "per_depth": [dict(row) for row in self.per_depth],
             "plot": self.plot,
@@ -461,9 +481,7 @@ def predict_map(
             "no grid point of these depths is seen by both halves",
             hint="choose depths inside the working range",
         )
-    em = error_map(
-        cam, centres, template, size_mm, noise=image_noise, **noise.propagation(param_cov)
-    )
+    em = error_map(cam, centres, template, size_mm, noise=image_noise, **noise.propagation(cm))
     written_plot = None
     if plot is not None:
         from endomeasure.measure.plots import plot_error_map
@@ -473,5 +491,5 @@ def predict_map(
     return MapReport(
         source, name, noise.method, image_noise,
         noise.calibration and param_cov is not None, [float(d) for d in z], _per_depth(em, z),
-        written_plot, written_csv, em,
+        written_plot, written_csv, em, noise.model_error_in(cm),
     )  # fmt: skip

@@ -212,8 +212,10 @@ def input_covariance(
     *,
     pixel_std: np.ndarray | None = None,
     pixel_rho: np.ndarray | None = None,
+    model_cov: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, slice]]:
-    """Covariance of the stacked input ``[pixels, free parameters]`` and its blocks.
+    """Covariance of the stacked input ``[pixels, (offsets,) free parameters]`` and its
+    blocks.
 
     Parameters
     ----------
@@ -232,12 +234,17 @@ def input_covariance(
         Covariance of the model's free parameters (in ``PARAM_NAMES`` order of the free
         ones), e.g. from calibration. Image and calibration errors are independent, so
         the result is block-diagonal.
+    model_cov : ndarray, shape (4 n, 4 n) or (M, 4 n, 4 n), px^2, optional
+        Covariance of the pixels' model-misfit offsets
+        (:meth:`~endomeasure.solvers.misfit.ModelMisfit.covariance`), independent of the
+        image noise and the parameters: the block ``model`` after the pixels.
 
     Returns
     -------
-    cov : ndarray, shape (L, L) or (M, L, L), L = 4 n + F
+    cov : ndarray, shape (L, L) or (M, L, L), L = 4 n (+ 4 n) + F
     blocks : dict
-        ``{'image': slice, 'calibration': slice}`` (the latter only with ``param_cov``).
+        ``{'image': slice, 'model': slice, 'calibration': slice}`` (``model`` only with
+        ``model_cov``, ``calibration`` only with ``param_cov``).
     """
     if pixel_std is not None:
         # input order per point: u_L, v_L, u_R, v_R
@@ -257,19 +264,33 @@ def input_covariance(
         raise BadInputError("the image noise is not given", hint="give sigma or pixel_std")
     else:
         pix = pixel_covariance(n_points, sigma, rho_images, rho_points)
-    blocks = {"image": slice(0, 4 * n_points)}
-    if param_cov is None:
-        return pix, blocks
-    pc = np.asarray(param_cov, dtype=np.float64)
-    if pc.ndim != 2 or pc.shape[0] != pc.shape[1] or not np.all(np.isfinite(pc)):
-        raise BadInputError(
-            f"the parameter covariance must be a finite square matrix, got {pc.shape}"
-        )
-    f = pc.shape[0]
-    cov = np.zeros((*pix.shape[:-2], 4 * n_points + f, 4 * n_points + f))
-    cov[..., : 4 * n_points, : 4 * n_points] = pix
-    cov[..., 4 * n_points :, 4 * n_points :] = pc
-    blocks["calibration"] = slice(4 * n_points, 4 * n_points + f)
+    parts = {"image": pix}
+    if model_cov is not None:
+        mc = np.asarray(model_cov, dtype=np.float64)
+        if mc.shape[-2:] != (4 * n_points, 4 * n_points) or not np.all(np.isfinite(mc)):
+            raise BadInputError(
+                f"the model-misfit covariance must be finite of shape (..., {4 * n_points}, "
+                f"{4 * n_points}), got {mc.shape}"
+            )
+        parts["model"] = mc
+    if param_cov is not None:
+        pc = np.asarray(param_cov, dtype=np.float64)
+        if pc.ndim != 2 or pc.shape[0] != pc.shape[1] or not np.all(np.isfinite(pc)):
+            raise BadInputError(
+                f"the parameter covariance must be a finite square matrix, got {pc.shape}"
+            )
+        parts["calibration"] = pc
+    if len(parts) == 1:
+        return pix, {"image": slice(0, 4 * n_points)}
+    lead = np.broadcast_shapes(*(p.shape[:-2] for p in parts.values()))
+    size = sum(p.shape[-1] for p in parts.values())
+    cov = np.zeros((*lead, size, size))
+    blocks, start = {}, 0
+    for name, block in parts.items():
+        sl = slice(start, start + block.shape[-1])
+        cov[..., sl, sl] = block
+        blocks[name] = sl
+        start = sl.stop
     return cov, blocks
 
 
@@ -672,6 +693,10 @@ class MeasurementFunction:
     n_points : int
     with_params : bool
         Whether inputs carry the free parameters after the pixels.
+    with_offsets : bool
+        Whether inputs carry, after the pixels, an offset of each pixel coordinate that
+        adds to it: the model misfit (:mod:`endomeasure.solvers.misfit`), an input of its
+        own so that the budget can name it.
     method : str
         Triangulation method (``'ml'`` default).
 
@@ -692,6 +717,7 @@ class MeasurementFunction:
         n_points: int,
         *,
         with_params: bool = False,
+        with_offsets: bool = False,
         method: str = "ml",
     ):
         self.model = model
@@ -699,15 +725,17 @@ class MeasurementFunction:
         self.n_points = n_points
         self.method = method
         self.free = np.flatnonzero(model.free_mask) if with_params else np.zeros(0, dtype=np.int64)
-        self.n_inputs = 4 * n_points + self.free.size
-        self.cross_columns = slice(0, 4 * n_points) if n_points > 2 else None
-        """Columns the UT gives cross points (:data:`CROSS_AUTO`): the pixels, when there
-        are more than two points. The curvature of a measurement comes from the depth
-        noise of its points (13-80 times their lateral noise at 10-60 mm behind the
-        default preset's prism): two points curve along one direction, their depth
-        difference, where the plain UT with beta = 2 is exact; three or more curve along
-        several (a polygon's two tilts, a polyline's segments), where it is not
-        (:data:`DEFAULT_BETA`)."""
+        self.n_pixel_inputs = 4 * n_points * (2 if with_offsets else 1)
+        """Pixels, and their offsets when ``with_offsets``; the parameters follow."""
+        self.n_inputs = self.n_pixel_inputs + self.free.size
+        self.cross_columns = slice(0, self.n_pixel_inputs) if n_points > 2 else None
+        """Columns the UT gives cross points (:data:`CROSS_AUTO`): the pixels (and their
+        offsets), when there are more than two points. The curvature of a measurement
+        comes from the depth noise of its points (13-80 times their lateral noise at
+        10-60 mm behind the default preset's prism): two points curve along one
+        direction, their depth difference, where the plain UT with beta = 2 is exact;
+        three or more curve along several (a polygon's two tilts, a polyline's
+        segments), where it is not (:data:`DEFAULT_BETA`)."""
 
     def inputs(self, pixels_left: np.ndarray, pixels_right: np.ndarray) -> np.ndarray:
         """The stacked input ``x0`` (M, L) of measurements with pixels (M, n, 2) per half."""
@@ -720,8 +748,9 @@ class MeasurementFunction:
             )
         lead = ql.shape[:-2]
         pix = np.concatenate([ql, qr], axis=-1).reshape(*lead, 4 * self.n_points)
+        offsets = np.zeros((*lead, self.n_pixel_inputs - 4 * self.n_points))
         params = np.broadcast_to(self.model.params[self.free], (*lead, self.free.size))
-        return np.concatenate([pix, params], axis=-1)
+        return np.concatenate([pix, offsets, params], axis=-1)
 
     def _points(self, corr: np.ndarray, params: ParamBatch | None) -> np.ndarray:
         """Triangulate the distinct rows of ``corr`` (R, 4) under the model, or each under
@@ -746,13 +775,16 @@ class MeasurementFunction:
         X = np.asarray(X, dtype=np.float64)
         lead = X.shape[:-1]
         flat = X.reshape(-1, X.shape[-1])
-        n = self.n_points
-        corr = flat[:, : 4 * n].reshape(-1, 4)
+        n, k = self.n_points, self.n_pixel_inputs
+        corr = flat[:, : 4 * n]
+        if k > 4 * n:
+            corr = corr + flat[:, 4 * n : k]
+        corr = corr.reshape(-1, 4)
         params = None
         if self.free.size:
             # every input row is a model; its few distinct parameter vectors form the
             # batch's table (invalid ones, e.g. n_glass <= 1, give NaN points and values)
-            free, index = np.unique(flat[:, 4 * n :], axis=0, return_inverse=True)
+            free, index = np.unique(flat[:, k:], axis=0, return_inverse=True)
             table = np.repeat(np.asarray(self.model.params)[None], free.shape[0], axis=0)
             table[:, self.free] = free
             params = ParamBatch(table, np.repeat(index.reshape(-1), n))
