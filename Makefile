@@ -44,7 +44,9 @@ ACCURACY_RUNS := \
 	"bench/match_precision.py" \
 	"bench/accuracy_designs.py --work $(ACCURACY_WORK)/designs --jobs 2" \
 	"bench/noise_designs.py $(ACCURACY_WORK)/designs" \
+	"bench/misfit_designs.py $(ACCURACY_WORK)/designs --default $(ACCURACY_WORK)/accuracy.h5" \
 	"bench/operator_designs.py $(ACCURACY_WORK)/designs" \
+	"bench/figure5.py $(ACCURACY_WORK)/accuracy.h5 $(ACCURACY_WORK)/designs/design_005.h5" \
 	"bench/accuracy_split.py --work $(ACCURACY_WORK)/split" \
 	"bench/accuracy_rotation.py --poses 24 --designs 10 --seed 0"
 

@@ -208,6 +208,12 @@ def _board_figures(session: Path, folder: Path) -> dict:
             "noise": noise, "prediction": prediction}  # fmt: skip
 
 
+def _rejudged(result: dict, work: Path) -> dict:
+    """A stored design's result with its board figures redone (``--rejudge``)."""
+    stem = work / f"design_{result['seed']:03d}"
+    return {**result, "board": _board_figures(stem.with_suffix(".h5"), stem)}
+
+
 def _peer_seconds(session: Path) -> float:
     from endomeasure.pipeline.calibrate import load_calibration_inputs
 
@@ -480,11 +486,12 @@ def main(argv=None) -> int:
                 print(_row(r), flush=True)
                 store.write_text("".join(json.dumps(r) + "\n" for r in done.values()))
     if args.rejudge:
-        for seed, r in sorted(done.items()):
-            if "board" in r:
-                stem = work / f"design_{seed:03d}"
-                r["board"] = _board_figures(stem.with_suffix(".h5"), stem)
-        store.write_text("".join(json.dumps(r) + "\n" for r in done.values()))
+        judged = [r for _, r in sorted(done.items()) if "board" in r and r["seed"] in seeds]
+        with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+            for r in pool.map(_rejudged, judged, [work] * len(judged)):
+                done[r["seed"]] = r
+                print(f"design {r['seed']}: board test judged again", flush=True)
+                store.write_text("".join(json.dumps(r) + "\n" for r in done.values()))
     again = args.no_run or args.rejudge or args.recalibrate
     todo = [] if again else [s for s in seeds if s not in done]
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:

@@ -35,7 +35,21 @@ def board_points(depth: float, offset=(0.0, 0.0)) -> np.ndarray:
     return np.stack([x, y, np.full(x.shape, depth)], axis=-1)
 
 
-def model_record(name: str, model) -> ModelRecord:
+def _misfit_residuals() -> dict[str, np.ndarray]:
+    """Calibration residuals with a known misfit field (``tests/solvers/misfit_data.py``)."""
+    from tests.solvers.misfit_data import board_residuals
+
+    X, image, half, q, r = board_residuals(np.random.default_rng(0))
+    return {
+        "obs_board_points": X, "obs_image": image.astype(np.int32),
+        "obs_half": half.astype(np.int8), "obs_pixels": q, "residuals": r,
+        "inliers": np.ones(image.size, dtype=np.uint8),
+    }  # fmt: skip
+
+
+def model_record(name: str, model, misfit: bool = False) -> ModelRecord:
+    """``model`` stored as ``calibrate`` would; with ``misfit``, with calibration
+    residuals that hold a known misfit beyond their noise."""
     free = np.flatnonzero(model.free_mask)
     std = PARAM_STD_REL * np.maximum(np.abs(model.params[free]), 1.0)
     return ModelRecord(
@@ -47,13 +61,17 @@ def model_record(name: str, model) -> ModelRecord:
         arrays={
             "free_names": np.array([model.PARAM_NAMES[i] for i in free], dtype=object),
             "covariance": np.diag(std**2),
+            **(_misfit_residuals() if misfit else {}),
         },
         attrs={"residual_variance": SIGMA_RECORD_PX**2, "rms": SIGMA_RECORD_PX},
     )
 
 
-def build_session(path, rng=None, noise_px=0.0, models=("raytrace",), offsets=((0.0, 0.0),)):
-    """A session with the given models and test images of the board (see module doc).
+def build_session(
+    path, rng=None, noise_px=0.0, models=("raytrace",), offsets=((0.0, 0.0),), misfit=False
+):
+    """A session with the given models and test images of the board (see module doc);
+    with ``misfit``, the models' calibration residuals hold a known misfit.
 
     ``noise_px``: the noise's sigma (px; a pair for u and v), or a function of the
     image's index and the half (0 left, 1 right) that returns it.
@@ -88,5 +106,5 @@ def build_session(path, rng=None, noise_px=0.0, models=("raytrace",), offsets=((
         w.write_images(records)
         w.write_detections(dets)
         for name in models:
-            w.write_model(model_record(name, FACTORIES[name]()))
+            w.write_model(model_record(name, FACTORIES[name](), misfit))
     return path, truth

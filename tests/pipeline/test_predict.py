@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 
 import numpy as np
 import pytest
@@ -202,6 +203,43 @@ def test_a_stored_measurement_is_predicted_again(tmp_path):
         assert {"m001-ut", "m001-linear"} <= set(s.record_names("prediction"))
     missing = _invoke(session, "--measurement", "m999")
     assert missing.exit_code == 2 and "m999" in missing.stderr
+
+
+def _measured_length(session, pts):
+    model = make_raytrace_model()
+    ql, qr = model.project(pts, "left").pixels, model.project(pts, "right").pixels
+    args = ["measure", str(session), "--image", "scene", "--kind", "length", "--json"]
+    for a, b in zip(ql, qr, strict=True):
+        args += ["--left", f"{a[0]:.17g},{a[1]:.17g}", "--right", f"{b[0]:.17g},{b[1]:.17g}"]
+    result = runner.invoke(cli.app, args)
+    assert result.exit_code == 0, result.output
+    return json.loads(result.stdout)
+
+
+def _not_propagated(value) -> bool:
+    return value is None or math.isnan(value)
+
+
+def test_the_calibrations_misfit_is_its_own_part_of_the_budget(tmp_path):
+    from tests.solvers.misfit_data import NOISE
+
+    pts = np.array([[-2.0, 0.0, 15.0], [2.0, 0.5, 15.5]])
+    plain = _measured_length(build_session(tmp_path / "plain.h5")[0], pts)
+    session = build_session(tmp_path / "misfit.h5", misfit=True)[0]
+    doc = _measured_length(session, pts)
+    assert _not_propagated(plain["std_model"]) and plain["sigma_source"] == "calibration residuals"
+    # the noise is the residuals' less their misfit: the noise drawn into them
+    assert doc["sigma_source"] == "calibration residuals less the model misfit"
+    assert doc["sigma_px"] == pytest.approx(NOISE, rel=0.15)
+    assert doc["std_model"] > doc["std_image"] > 0
+    parts = doc["std_image"] ** 2 + doc["std_calibration"] ** 2 + doc["std_model"] ** 2
+    assert doc["std"] ** 2 == pytest.approx(parts, rel=0.05)
+    alone = _invoke(session, "--measurement", doc["record"], "--no-model-error", "--json")
+    assert alone.exit_code == 0, alone.output
+    without = json.loads(alone.stdout)
+    assert _not_propagated(without["std_model"])
+    assert without["std_image"] == pytest.approx(doc["std_image"], rel=0.02)
+    assert without["std"] < 0.8 * doc["std"]
 
 
 def test_map_from_a_model_file_without_calibration(tmp_path):

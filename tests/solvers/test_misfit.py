@@ -1,59 +1,31 @@
 """The model misfit of a calibration's residuals (solvers/misfit.py).
 
-Residuals are built with a known split: seeded Gaussian noise, independent from corner to
-corner, plus a smooth field of known variance (a plane wave of random phase per image,
-whose variance is half its squared amplitude), on square boards placed at random in both
-halves. The fit must return the field's variance as misfit and the noise as noise, tell
-noise the two views of a corner share from a misfit, and give a covariance that is one.
+Residuals are built with a known split (``tests/solvers/misfit_data.py``): seeded
+Gaussian noise, independent from corner to corner, plus a smooth field of known variance
+on square boards placed at random in both halves. The fit must return the field's
+variance as misfit and the noise as noise, tell noise the two views of a corner share
+from a misfit, and give a covariance that is one.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from tests.solvers.misfit_data import AMPLITUDE, GRID, NOISE, SPACING, board_residuals
 
 from endomeasure.measure.predict import ImageNoise, predict_measurement_error
 from endomeasure.solvers.misfit import ModelMisfit, fit_misfit
 
-NOISE = 0.03
-AMPLITUDE = 0.1  # px: field variance AMPLITUDE^2 / 2 per coordinate
-WAVELENGTH = 240.0  # px
-SPACING = 12.0  # px between neighbouring corners
-GRID = 8
-
-
-def _board_residuals(rng, n_images=30, field_l=1.0, field_r=-0.5, shared=0.0):
-    """Stacked (board_points, image, half, pixels, residuals) of ``n_images`` boards seen
-    in both halves: the field times ``field_l`` / ``field_r`` in each half, independent noise
-    of NOISE, and noise ``shared`` common to a corner's two views."""
-    ij = np.stack(np.meshgrid(np.arange(GRID), np.arange(GRID)), -1).reshape(-1, 2)
-    X = np.column_stack([ij * 1.0, np.zeros(len(ij))])
-    direction = np.array([0.8, 0.6])
-    out = {k: [] for k in ("X", "image", "half", "q", "r")}
-    for i in range(n_images):
-        origin = rng.uniform(20, 120, 2)
-        phase = rng.uniform(0, 2 * np.pi, 2)
-        common = rng.normal(0, shared, (len(ij), 2)) if shared else 0.0
-        for h, scale in enumerate((field_l, field_r)):
-            q = origin + SPACING * ij + (0 if h == 0 else 320)
-            arg = 2 * np.pi * (q - (0 if h == 0 else 320)) @ direction / WAVELENGTH
-            field = AMPLITUDE * np.sin(arg[:, None] + phase[None])
-            r = scale * field + rng.normal(0, NOISE, (len(ij), 2)) + common
-            for k, v in zip(out, (X, np.full(len(ij), i), np.full(len(ij), h), q, r),
-                            strict=True):  # fmt: skip
-                out[k].append(v)
-    return [np.concatenate(v) for v in out.values()]
-
 
 def test_noise_only_has_no_misfit():
-    m = fit_misfit(*_board_residuals(np.random.default_rng(1), field_l=0.0, field_r=0.0))
+    m = fit_misfit(*board_residuals(np.random.default_rng(1), field_l=0.0, field_r=0.0))
     assert m is not None
     np.testing.assert_allclose(m.noise, NOISE, rtol=0.05)
     assert np.all(m.std < 0.3 * NOISE)  # sampling leaves at most a trace
 
 
 def test_field_variance_is_the_misfit_and_noise_the_rest():
-    m = fit_misfit(*_board_residuals(np.random.default_rng(2)))
+    m = fit_misfit(*board_residuals(np.random.default_rng(2)))
     field_std = AMPLITUDE / np.sqrt(2)
     np.testing.assert_allclose(m.std[0], field_std, rtol=0.12)
     np.testing.assert_allclose(m.std[1], 0.5 * field_std, rtol=0.15)
@@ -65,13 +37,13 @@ def test_field_variance_is_the_misfit_and_noise_the_rest():
 
 
 def test_noise_the_two_views_share_is_not_a_misfit():
-    data = _board_residuals(np.random.default_rng(3), field_l=0.0, field_r=0.0, shared=NOISE)
+    data = board_residuals(np.random.default_rng(3), field_l=0.0, field_r=0.0, shared=NOISE)
     m = fit_misfit(*data)
     assert np.all(m.std < 0.3 * NOISE)
 
 
 def test_too_few_runs_give_none():
-    X, image, half, q, r = _board_residuals(np.random.default_rng(4), n_images=1)
+    X, image, half, q, r = board_residuals(np.random.default_rng(4), n_images=1)
     keep = np.arange(X.shape[0]) % GRID < 2  # two columns: no run of three along a row
     keep &= (np.arange(X.shape[0]) // GRID) < 2  # and two rows
     assert fit_misfit(X[keep], image[keep], half[keep], q[keep], r[keep]) is None
