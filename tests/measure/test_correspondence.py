@@ -133,8 +133,9 @@ class Cylinder:
         return p, np.stack([arc, p[..., 1]], axis=-1), (disc > 0) & (t > 0)
 
 
-def render(model, surface, rng, noise_dn: float = NOISE_DN) -> np.ndarray:
-    """8-bit image of ``surface`` through ``model``: each pixel centre's ray, both halves."""
+def render(model, surface, rng, noise_dn: float = NOISE_DN, vignetting=None) -> np.ndarray:
+    """8-bit image of ``surface`` through ``model``: each pixel centre's ray, both halves;
+    ``vignetting(pixels, half)`` multiplies the brightness in the image plane."""
     width, height = model.config.image_size
     split = model.config.split
     v, u = np.mgrid[0:height, 0:width].astype(np.float64)
@@ -145,6 +146,8 @@ def render(model, surface, rng, noise_dn: float = NOISE_DN) -> np.ndarray:
         _, xy, ok = surface.hit(rays.origins, rays.directions)
         ok &= rays.status == Status.OK
         albedo[:, cols] = np.where(ok, surface.texture(np.nan_to_num(xy)), 0.1)
+        if vignetting is not None:
+            albedo[:, cols] *= vignetting(pixels[:, cols], half)
     image = 255.0 * albedo + rng.normal(0.0, noise_dn, albedo.shape)
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
@@ -320,6 +323,81 @@ def test_matches_on_a_curved_surface(cylinder_scene, rng):
     assert accepted.all(), [m.message for m in matches if not m.ok]
     assert np.sqrt(np.mean(np.sum(err**2, -1))) < MATCH_RMS_TOL_PX
     assert np.linalg.norm(err, axis=-1).max() < MATCH_MAX_TOL_PX
+
+
+VIGNETTING_SLOPE = 0.004
+"""Log-brightness slope per px across each half, opposite in the two (each darker towards
+its outer edge): about what the random designs' vignetting gives."""
+
+
+def _dark_marks(base, centres_mm, sigma_mm=0.08):
+    """``base`` with dark Gaussian spots at ``centres_mm`` (texture coordinates), some
+    two pixels wide: smooth enough for the renderer's point samples."""
+
+    def texture(xy):
+        out = base(xy)
+        for c in centres_mm:
+            r2 = np.sum((xy - c) ** 2, axis=-1)
+            out = out * (1.0 - 0.9 * np.exp(-0.5 * r2 / sigma_mm**2))
+        return out
+
+    return texture
+
+
+def test_vignetting_that_differs_between_the_halves_does_not_move_the_match(raytrace_model):
+    """Dark marks on texture: each half darkened towards its own edge moves a match that
+    ignores the gain field across its patch; measured apart, the match stays on the truth."""
+    from endomeasure.measure import correspondence
+
+    model = raytrace_model
+    rng = np.random.default_rng(21)
+    marks = rng.uniform(-1.5, 1.5, (40, 2))
+    surface = Plane(
+        [0.0, 0.0, PLANE_DEPTH_MM],
+        (0.0, 0.0, -1.0),
+        _dark_marks(sinusoid_texture(rng, wavelengths_mm=(0.4, 2.0)), marks),
+    )
+    split, width = model.config.split, model.config.image_size[0]
+
+    def vignetting(pixels, half):
+        centre = split / 2 if half is Half.LEFT else (split + width) / 2
+        sign = -1.0 if half is Half.LEFT else 1.0
+        # at half the brightness, so that the brighter end stays below 8-bit saturation
+        return 0.5 * np.exp(-sign * VIGNETTING_SLOPE * (pixels[..., 0] - centre))
+
+    plain = render(model, surface, rng, noise_dn=0.0)
+    shaded = render(model, surface, rng, noise_dn=0.0, vignetting=vignetting)
+    rays = model.rays(grid(model, step=1, margin=0), Half.LEFT)
+    points, xy, ok = surface.hit(rays.origins, rays.directions)
+    at_mark = grid(model, step=1, margin=0)[np.argmin(
+        np.linalg.norm(xy[:, None] - marks[None], axis=-1), axis=0)]  # fmt: skip
+    _, _, truth, status = true_matches(model, surface, at_mark)
+    use = (status == Status.OK) & _has_room(model, truth)
+    pixels, truth = at_mark[use], truth[use]
+    assert pixels.shape[0] >= 20
+
+    def errors(image):
+        accepted, err = _errors(find_matches(model, image, pixels, "left"), truth)
+        out = np.full(truth.shape, np.nan)
+        out[accepted] = err
+        return out
+
+    plain_err, shaded_err = errors(plain), errors(shaded)
+    original = correspondence._relative_gain  # the test can fail: without the measured
+    correspondence._relative_gain = lambda *args: np.zeros(2)  # field the matches move
+    try:
+        ignored_err = errors(shaded)
+    finally:
+        correspondence._relative_gain = original
+    both = np.all(np.isfinite(np.hstack([plain_err, shaded_err, ignored_err])), axis=1)
+    assert both.sum() >= 20
+    bias = {k: e[both].mean(axis=0) for k, e in
+            (("plain", plain_err), ("shaded", shaded_err), ("ignored", ignored_err))}  # fmt: skip
+    rms = {k: float(np.sqrt(np.mean(e[both] ** 2))) for k, e in
+           (("plain", plain_err), ("shaded", shaded_err), ("ignored", ignored_err))}  # fmt: skip
+    assert np.abs(bias["shaded"] - bias["plain"]).max() < 0.005
+    assert rms["shaded"] < 1.5 * rms["plain"] + 0.005, rms
+    assert rms["ignored"] > 2 * rms["shaded"], rms
 
 
 def test_search_from_the_right_half_finds_the_left_point(plane_scene, rng):

@@ -53,6 +53,22 @@ The search
    and its ray gap (the common perpendicular of the two
    rays) is a real check of the calibration and the match.
 
+Relative gain field
+-------------------
+Vignetting and the apex band darken each half towards its own edges, so one surface
+point's brightness changes *across a patch* differently in the two views: a gain that
+varies over the patch, which the brightness model (gain, offset, ramp) cannot hold. On a
+feature that is not symmetric (a dark mark on brighter texture) it moves the match: on
+the random designs' scenes, every mark's match lay 0.005-0.03 px left of the truth, the
+same without image noise, and not without vignetting. A free gain ramp in the refinement
+would absorb it, but on an edge it mimics a shift and doubles the scatter. So the field is
+measured apart, on a window :data:`GAIN_REACH` times the patch's, where both views of the
+same surface (the plane warp maps one onto the other) are smoothed alike
+(:data:`GAIN_SMOOTH_PX`): the texture cancels in the ratio of the two, the log of which is
+fitted by a plane; the reference patch is multiplied by that field before the refinement
+(:func:`_relative_gain`). On the random designs' marks the mean error fell from
+-0.016 px to -0.003 px with the scatter unchanged (``docs/accuracy.md``).
+
 Texture criterion
 -----------------
 A match can only be located along the curve if the reference patch changes along the
@@ -97,6 +113,7 @@ import functools
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 from endomeasure import defaults
 from endomeasure.conventions import Half, Status, in_half
@@ -162,6 +179,14 @@ means it has locked onto something else, and the curve peak is kept."""
 _REFINE_MAX_SHAPE = 0.3
 """Largest entry of the refinement's linear shape correction (30 % scale or shear)."""
 _JACOBIAN_STEP_PX = 0.5
+GAIN_REACH = 2.0
+"""Half-width of the window the relative gain field is measured on, in patch half-widths:
+wide enough that the field's slope stands out of the texture's, close enough that the
+plane warp still holds."""
+GAIN_SMOOTH_PX = 3.0
+"""Gaussian smoothing (sigma, px of the reference half) of both views before their ratio
+is taken: it averages the texture and the noise over some 30 pixels, far less than the
+field changes over."""
 """Half step of the central differences of the rays used for the local affine map."""
 
 
@@ -1188,8 +1213,10 @@ def _refine_match(query: _Query, search: _Search, peak: _Peak) -> _Refined:
     else:
         warped = offsets @ affine.T  # the identity for warp 'none'
     shape = settings.warp != "none"  # plain NCC: translation only
-    # the refinement compares spline-interpolated patches on both sides (see _sample_spline)
+    # the refinement compares spline-interpolated patches on both sides (see _sample_spline),
+    # the reference's under the relative gain field of the two views
     template_fine = _sample_spline(grey, query.pixel + offsets, query.cols)[0]
+    template_fine = template_fine * np.exp(offsets @ _relative_gain(query, q0, depth, affine))
     target_noise = max(_local_noise(grey, q0, query.target_cols, settings.patch), query.image.floor)
     refined = _refine(
         grey, q0, warped, offsets, template_fine, query.target_cols, grey.shape[0], shape,
@@ -1197,6 +1224,46 @@ def _refine_match(query: _Query, search: _Search, peak: _Peak) -> _Refined:
     )  # fmt: skip
     q, warped = refined if refined is not None else (q0, warped)
     return _Refined(q, warped, q + warped, template_fine, target_noise)
+
+
+def _relative_gain(query: _Query, q0: np.ndarray, depth: float, affine: np.ndarray) -> np.ndarray:
+    """Slope of the log brightness ratio, searched over reference view, at the match start
+    ``q0``, per px of reference offset (2,) (module notes, "Relative gain field").
+
+    The window is the widest up to :data:`GAIN_REACH` patch half-widths that fits both
+    halves; zero where not even the patch and the smoothing's border fit, or where the
+    window is too dark (ten times the quantisation noise) for a ratio.
+    """
+    grey, settings = query.image.grey, query.settings
+    edge = int(np.ceil(GAIN_SMOOTH_PX))  # the border where the smoothing reaches outside
+    height = grey.shape[0]
+    for reach in range(int(round(GAIN_REACH * (settings.patch // 2))), settings.patch // 2, -1):
+        steps = np.arange(-reach, reach + 1, dtype=np.float64)
+        window = np.stack(np.meshgrid(steps, steps), axis=-1).reshape(-1, 2)
+        if settings.warp == "plane":
+            warped = _patch_warp(query.model, query.pixel, query.half, depth, window, affine)
+        else:
+            warped = window @ affine.T
+        views = ((query.pixel + window, query.cols), (q0 + warped, query.target_cols))
+        if all(np.all(_inside(pos, (c[0] + 0.5, c[1] - 0.5), height)) for pos, c in views):
+            break
+    else:
+        return np.zeros(2)
+    side = steps.size
+    smooth = [
+        gaussian_filter(_sample(grey, pos[:, 0], pos[:, 1], cols).reshape(side, side),
+                        GAIN_SMOOTH_PX, mode="nearest")
+        for pos, cols in views
+    ]  # fmt: skip
+    inner = np.zeros((side, side), dtype=bool)
+    inner[edge:-edge, edge:-edge] = True
+    floor = 10.0 * max(query.image.floor, 1e-12)
+    use = inner & (smooth[0] > floor) & (smooth[1] > floor)
+    if use.sum() < settings.patch:
+        return np.zeros(2)
+    design = np.column_stack([np.ones(int(use.sum())), window.reshape(side, side, 2)[use]])
+    ratio = np.log(smooth[1][use] / smooth[0][use])
+    return np.linalg.lstsq(design, ratio, rcond=None)[0][1:]
 
 
 def _final_score(
