@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -103,6 +104,8 @@ def _atomic_write(path: Path, write) -> None:
     tmp = path.with_name(f".tmp{os.getpid()}-{path.name}")
     try:
         write(tmp)
+        if path.exists():  # a replaced file keeps its permissions
+            shutil.copymode(path, tmp)
         os.replace(tmp, path)
     finally:
         if tmp.exists():

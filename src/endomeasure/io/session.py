@@ -66,6 +66,7 @@ import math
 import os
 import re
 import shutil
+import stat
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -84,6 +85,7 @@ from endomeasure.errors import (
     SessionVersionError,
 )
 from endomeasure.io._lock import DEFAULT_LOCK_TIMEOUT_S, SessionLock
+from endomeasure.io.outputs import checked_session_target, file_kind
 
 __all__ = [
     "FORMAT_NAME",
@@ -504,6 +506,13 @@ def _open_h5(path: Path, mode: str) -> h5py.File:
         )
     if path.is_dir():
         raise SessionError("a session must be a file, not a directory", path=spath)
+    st_mode = os.stat(path).st_mode
+    if not stat.S_ISREG(st_mode):  # never open a FIFO or a device: it could block or never end
+        raise SessionError(
+            f"the session path is a {file_kind(st_mode)}, not a session file",
+            path=spath,
+            hint="give an endomeasure session file (.h5)",
+        )
     try:
         is_hdf5 = h5py.is_hdf5(spath)
     except OSError as exc:
@@ -1085,6 +1094,8 @@ def open_session(
         An unknown major format version.
     """
     path = Path(path)
+    if path.is_symlink():  # lock the target, as writers do
+        path = Path(os.path.realpath(path))
     # The shared lock only covers the open: once open, the file is an immutable snapshot
     # because writers replace it rather than change it.
     with SessionLock(path, exclusive=False, timeout=lock_timeout, required=False):
@@ -1143,13 +1154,9 @@ def edit_session(
     SessionError, SessionVersionError
         As :func:`open_session`; also when the lock is not granted in time.
     """
-    path = Path(path)
-    if not path.parent.is_dir():
-        raise SessionError(
-            "the session's directory does not exist",
-            path=str(path),
-            hint="create the directory first",
-        )
+    # a symlink is written through (its target replaced, the link kept); a hard-linked
+    # session, a FIFO, a device or an unwritable folder are refused before any work
+    path = checked_session_target(path, create=create)
     with SessionLock(path, exclusive=True, timeout=lock_timeout):
         _remove_stale_temps(path)
         exists = path.exists()
@@ -1161,9 +1168,16 @@ def edit_session(
             )
         if exists:
             _open_h5(path, "r").close()  # validate before copying: clear errors, no work
-        fd, tmp_name = tempfile.mkstemp(
-            dir=path.parent, prefix=f".{path.name}.", suffix=_TMP_SUFFIX
-        )
+        try:
+            fd, tmp_name = tempfile.mkstemp(
+                dir=path.parent, prefix=f".{path.name}.", suffix=_TMP_SUFFIX
+            )
+        except OSError as exc:
+            raise SessionError(
+                f"cannot write beside the session ({exc.strerror or exc})",
+                path=str(path),
+                hint="the session's folder must be writable",
+            ) from None
         tmp = Path(tmp_name)
         h5 = None
         try:

@@ -274,6 +274,11 @@ def calibrate_session(
     from endomeasure.measure.plots import plot_residuals
     from endomeasure.solvers.calibrate import calibrate
 
+    from endomeasure.io.outputs import checked_output_dir, checked_session_target
+
+    checked_session_target(session, create=False)  # the models are stored in it at the end
+    if plot_dir is not None:
+        plot_dir = checked_output_dir(plot_dir, "plot folder")
     names = calibration_order(model)
     options = _options_per_model(names, dict(values or {}), frozenset(free), frozenset(hold),
                                  _read_seed(seed))  # fmt: skip
@@ -332,9 +337,11 @@ def _options_per_model(names, values: dict, free: frozenset, hold: frozenset, se
 def export_session_model(session: str | Path, name: str, fmt: str, out: str | Path) -> Path:
     """``endomeasure export``: write a stored model (and its calibration figures) to a file."""
     from endomeasure.io.export import export_model
+    from endomeasure.io.outputs import checked_output
     from endomeasure.io.records import calibration_extras, check_usable, model_from_record
     from endomeasure.io.session import open_session
 
+    out = checked_output(out, "exported model", inputs=[session])
     with open_session(session) as s:
         record = s.model(name)
     check_usable(record, session)

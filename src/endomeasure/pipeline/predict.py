@@ -218,7 +218,13 @@ def predict_board_test(
     from endomeasure.measure.board_runs import prediction_zones, within_band
     from endomeasure.measure.board_test import checked_zone_mm
 
+    from endomeasure.io.outputs import PLOT_SUFFIXES, checked_output, checked_session_target
+
     zone = checked_zone_mm(defaults.ZONE_MM if zone_mm is None else zone_mm)
+    if store:
+        checked_session_target(session, create=False)
+    if plot is not None:
+        plot = checked_output(plot, "plot", inputs=[session], suffixes=PLOT_SUFFIXES)
     with open_session(session) as reader:
         cm = load_calibrated_model(reader, model, session)
         if noise.sigma is not None:
@@ -437,6 +443,7 @@ def predict_map(
     ``DEFAULT_DEPTHS_MM``); ``grid``: (NU, NV) pixels over the left half.
     """
     from endomeasure.io.export import write_map_csv
+    from endomeasure.io.outputs import PLOT_SUFFIXES, checked_outputs
     from endomeasure.measure.predict import TEMPLATES, error_map, volume_grid
 
     if template not in TEMPLATES:
@@ -446,6 +453,9 @@ def predict_map(
     n_u, n_v = grid
     if n_u < 2 or n_v < 2:
         raise BadInputError(f"the map grid needs at least 2x2 points, got {n_u}x{n_v}")
+    plot, csv = checked_outputs(
+        [(plot, "plot", PLOT_SUFFIXES), (csv, "CSV file", None)], inputs=[session, model_file]
+    )
     cam, cm, source, name = _map_model(session, model, model_file)
     if depths is None:
         seen = None if cm is None else cm.depth_range_mm
