@@ -191,9 +191,7 @@ def checked_outputs(
     return checked
 
 
-def checked_output_dir(
-    path: str | os.PathLike, what: str, *, create_parents: bool = False
-) -> Path:
+def checked_output_dir(path: str | os.PathLike, what: str, *, create_parents: bool = False) -> Path:
     """An output folder (created later if missing), or a :class:`BadInputError`.
 
     The folder may exist (it must then be a directory where files can be created) or

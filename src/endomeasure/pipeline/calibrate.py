@@ -269,12 +269,11 @@ def calibrate_session(
     CalibrateReport
         ``refused`` names the models whose calibration was refused (not stored).
     """
+    from endomeasure.io.outputs import checked_output_dir, checked_session_target
     from endomeasure.io.records import calibration_record
     from endomeasure.io.session import edit_session
     from endomeasure.measure.plots import plot_residuals
     from endomeasure.solvers.calibrate import calibrate
-
-    from endomeasure.io.outputs import checked_output_dir, checked_session_target
 
     checked_session_target(session, create=False)  # the models are stored in it at the end
     if plot_dir is not None:

@@ -213,12 +213,11 @@ def predict_board_test(
     the prediction, if there is none). Stores a ``prediction`` record named
     ``board-test-<model>``.
     """
+    from endomeasure.io.outputs import PLOT_SUFFIXES, checked_output, checked_session_target
     from endomeasure.io.records import board_prediction_record, load_calibrated_model
     from endomeasure.io.session import edit_session, open_session
     from endomeasure.measure.board_runs import prediction_zones, within_band
     from endomeasure.measure.board_test import checked_zone_mm
-
-    from endomeasure.io.outputs import PLOT_SUFFIXES, checked_output, checked_session_target
 
     zone = checked_zone_mm(defaults.ZONE_MM if zone_mm is None else zone_mm)
     if store:
