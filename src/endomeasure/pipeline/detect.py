@@ -127,6 +127,30 @@ class DetectReport:
             return 2
         return 1 if counts[STATUS_FAILED] else 0
 
+    @property
+    def failure(self) -> str:
+        """Why the command did not fully succeed, in one sentence ('' when it did): how
+        many images could not be used and their most frequent reasons."""
+        code = self.exit_code
+        if code == 0:
+            return ""
+        reasons: dict[str, int] = {}
+        for image in self.images:
+            if image.status != STATUS_FAILED:
+                continue
+            why = image.error or "; ".join(
+                sorted({h.failure for h in image.halves.values() if h.failure})
+            )
+            reasons[why or "failed"] = reasons.get(why or "failed", 0) + 1
+        common = sorted(reasons.items(), key=lambda item: -item[1])[:3]
+        listed = ", ".join(f"{why} ({n})" for why, n in common)
+        n_failed, n_all = self.counts[STATUS_FAILED], len(self.images)
+        if code == 2:
+            if n_all == 0:
+                return "no image to detect in: the paths hold no image or video file"
+            return f"nothing usable: none of the {n_all} image(s) showed the board: {listed}"
+        return f"{n_failed} of {n_all} image(s) could not be used: {listed}"
+
     def to_dict(self) -> dict[str, Any]:
         found, examined = self.halves_found
         return {
