@@ -709,7 +709,7 @@ def _detect_failure(report: Any) -> EndomeasureError | None:
         hint = (
             "give image files or folders of images"
             if not report.images
-            else ("check the --board spec against the board in the images")
+            else "each image's reason is in the table (with --json: in its report)"
         )
         return BadInputError(report.failure, hint=hint)
     if report.exit_code == 1:

@@ -2,7 +2,21 @@
 and the core apply them. Standard library only, so that ``endomeasure --help`` stays fast.
 """
 
-__all__ = ["ALL_MODELS", "WARN_PERCENT", "PATCH_PX", "ZONE_MM"]
+__all__ = [
+    "ALL_MODELS",
+    "MAX_IMAGE_PIXELS",
+    "MAX_IMAGE_SIDE",
+    "MAX_MAP_POINTS",
+    "MAX_MC_SAMPLES",
+    "MAX_PATCH_PX",
+    "MAX_POINTS_PER_MEASUREMENT",
+    "MAX_WORKERS_PER_CPU",
+    "MAX_ZONES",
+    "MIN_ZONE_MM",
+    "PATCH_PX",
+    "WARN_PERCENT",
+    "ZONE_MM",
+]
 
 WARN_PERCENT = 5.0
 """Accuracy-index threshold (percent): the +-5 % that commercial videoscopes quote for
@@ -17,3 +31,41 @@ a few mm, wide enough for several images per zone and a per-zone standard deviat
 
 ALL_MODELS = "all"
 """The ``--model`` value that asks for every registered model."""
+
+MAX_IMAGE_SIDE = 16384
+"""Largest image width or height accepted (px). Videoscope sensors are at most a few
+thousand pixels wide; 16384 is ten times that, and OpenCV's own per-side limit in
+several codecs. Checked from the file header before any pixel is decoded."""
+
+MAX_IMAGE_PIXELS = 100_000_000
+"""Largest image area accepted (px): 100 MP of 8-bit colour decode to 300 MB, and the
+detector needs a few such buffers; beyond it a refusal is cheaper than running out of
+memory halfway through."""
+
+MAX_WORKERS_PER_CPU = 4
+"""``--workers`` may be at most this many times ``os.cpu_count()``: more processes than
+that only add memory (each holds decoded images) and start-up time, never speed."""
+
+MAX_MC_SAMPLES = 10_000_000
+"""Most Monte Carlo samples (``--samples``): the sampled distribution's quantiles are
+already stable to 0.1 % at 1e6; 1e7 still fits in memory for a handful of points."""
+
+MAX_MAP_POINTS = 1_000_000
+"""Most grid points of an error map (``--grid`` NU x NV times the depths): a million
+unscented transforms take minutes; a larger map is not readable in a plot either."""
+
+MIN_ZONE_MM = 0.01
+"""Narrowest board-test zone (``--zone-mm``, mm): the test images are taken in steps of
+about 1 mm, so zones much narrower than that hold one image each, or none."""
+
+MAX_ZONES = 10_000
+"""Most board-test zones: beyond it the zone table and plot are unreadable and the
+per-zone statistics meaningless."""
+
+MAX_PATCH_PX = 201
+"""Largest correlation patch side (``--patch``, px, odd): wider than a few percent of a
+half, a patch spans depth changes and the search no longer localises a point."""
+
+MAX_POINTS_PER_MEASUREMENT = 1000
+"""Most points in one measurement (a polyline or an area outline): far more than an
+operator clicks, small enough that the unscented transform's 4N+1 sigma points stay fast."""

@@ -136,10 +136,11 @@ def calibration_record(result, name: str | None = None) -> ModelRecord:
 
 def model_from_record(record: ModelRecord):
     """The camera model of a stored model entry (registry name, parameters, config)."""
+    from endomeasure.io.image_header import checked_image_size
     from endomeasure.models import model_from_dict
 
     try:
-        return model_from_dict(
+        model = model_from_dict(
             {
                 "model": record.registry_name,
                 "param_names": list(record.param_names),
@@ -147,8 +148,18 @@ def model_from_record(record: ModelRecord):
                 "config": record.config,
             }
         )
-    except (KeyError, ValueError) as exc:
+    except (KeyError, ValueError, TypeError) as exc:
         raise BadInputError(f"stored model {record.name!r} cannot be read: {exc}") from None
+    size = model.config.image_size
+    try:  # a crafted size would make every image-sized grid of the model unbounded
+        checked_image_size(size, f"model {record.name!r}")
+    except BadInputError:
+        raise BadInputError(
+            f"stored model {record.name!r} declares an image of {size[0]}x{size[1]} px, "
+            "beyond the limits",
+            hint="the session is damaged or crafted; recalibrate",
+        ) from None
+    return model
 
 
 def _stored_covariance(record: ModelRecord) -> tuple[list[str], np.ndarray] | None:

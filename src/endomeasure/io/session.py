@@ -78,6 +78,7 @@ import numpy as np
 
 from endomeasure import __version__
 from endomeasure.conventions import Half
+from endomeasure.defaults import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE
 from endomeasure.errors import (
     BadInputError,
     EndomeasureError,
@@ -85,7 +86,8 @@ from endomeasure.errors import (
     SessionVersionError,
 )
 from endomeasure.io._lock import DEFAULT_LOCK_TIMEOUT_S, SessionLock
-from endomeasure.io.outputs import checked_session_target, file_kind
+from endomeasure.io.image_header import checked_image_size
+from endomeasure.io.outputs import checked_session_target, file_kind, is_regular_file
 
 __all__ = [
     "FORMAT_NAME",
@@ -628,13 +630,39 @@ class Session:
             attrs, _ = _read_attrs(node)
         size = attrs.pop("image_size", None)
         split = attrs.pop("split", None)
+        size = None if size is None else (int(size[0]), int(size[1]))
+        split = None if split is None else int(split)
+        if size is not None:
+            self._check_declared(size, "its image size")
+            if split is not None and not 0 < split < size[0]:
+                raise SessionError(
+                    f"the session declares the split column {split} outside its "
+                    f"{size[0]} px wide images",
+                    path=str(self.path),
+                    hint="the metadata is damaged or crafted; restore the session from a backup",
+                )
+        created_by = _attr_to_python(root.attrs.get("created_by", ""))
+        if isinstance(created_by, bytes):
+            created_by = created_by.decode("utf-8", errors="replace")
         return SessionMetadata(
             format_version=_attr_to_python(root.attrs["format_version"]),
-            created_by=_attr_to_python(root.attrs.get("created_by", "")),
-            image_size=None if size is None else (int(size[0]), int(size[1])),
-            split=None if split is None else int(split),
+            created_by=str(created_by),
+            image_size=size,
+            split=split,
             attrs=attrs,
         )
+
+    def _check_declared(self, size: tuple[int, int], what: str) -> None:
+        """A SessionError for a declared image size beyond the limits (before any read)."""
+        try:
+            checked_image_size(size, str(self.path))
+        except BadInputError as exc:
+            raise SessionError(
+                f"the session declares {what} {size[0]}x{size[1]} px, beyond the limit of "
+                f"{MAX_IMAGE_SIDE} px a side and {MAX_IMAGE_PIXELS / 1e6:g} MP",
+                path=str(self.path),
+                hint="the session is damaged or crafted; restore it from a backup",
+            ) from exc
 
     # images
     def _image_nodes(self) -> dict[str, Any]:
@@ -681,7 +709,35 @@ class Session:
         nodes = self._image_nodes()
         if name not in nodes:
             raise _not_found("image", name, nodes, str(self.path))
-        return np.asarray(nodes[name][()])
+        dset = nodes[name]
+        self._check_image_shape(name, dset.shape, dset.dtype)  # before reading a pixel
+        return np.asarray(dset[()])
+
+    def _check_image_shape(self, name: str, shape: tuple[int, ...], dtype: Any) -> None:
+        """Refuse an image dataset whose declared shape or type no image of the session
+        can have: beyond the limits, other than the session's image size, or not 8/16-bit
+        grey or colour pixels."""
+        bad = None
+        if len(shape) not in (2, 3) or (len(shape) == 3 and shape[2] not in (1, 3, 4)):
+            bad = f"shape {tuple(shape)}"
+        elif np.dtype(dtype) not in (np.uint8, np.uint16):
+            bad = f"pixel type {np.dtype(dtype)}"
+        if bad is not None:
+            raise SessionError(
+                f"the stored image {name!r} has the {bad}, which no image has",
+                path=str(self.path),
+                hint="the session is damaged or crafted; restore it from a backup",
+            )
+        size = (int(shape[1]), int(shape[0]))
+        self._check_declared(size, f"the image {name!r} of")
+        declared = self.metadata().image_size
+        if declared is not None and size != declared:
+            raise SessionError(
+                f"the stored image {name!r} is {size[0]}x{size[1]} px but the session "
+                f"declares {declared[0]}x{declared[1]} px",
+                path=str(self.path),
+                hint="the session is damaged or crafted; restore it from a backup",
+            )
 
     @_translating_errors
     def image_record(self, name: str) -> ImageRecord:
@@ -1096,6 +1152,8 @@ def open_session(
     path = Path(path)
     if path.is_symlink():  # lock the target, as writers do
         path = Path(os.path.realpath(path))
+    if not is_regular_file(path):
+        _open_h5(path, "r")  # raises the reason; no lock file is left beside a wrong path
     # The shared lock only covers the open: once open, the file is an immutable snapshot
     # because writers replace it rather than change it.
     with SessionLock(path, exclusive=False, timeout=lock_timeout, required=False):

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from endomeasure.errors import BadInputError
+from endomeasure.io.image_header import checked_image_size
 
 __all__ = [
     "VIDEO_SUFFIXES",
@@ -199,6 +200,7 @@ class VideoSummary:
 
 
 def _size_check(size: tuple[int, int], image_size, path: str) -> None:
+    checked_image_size(size, path)  # the limits, from the container before any decoding
     if image_size is not None and size != tuple(image_size):
         raise BadInputError(
             f"the video's frames are {size[0]}x{size[1]} px but the session's images are "

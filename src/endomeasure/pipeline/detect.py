@@ -199,9 +199,11 @@ def _read_task(
     board: str | None = None,
     split: int | None = None,
     method: str | None = None,
+    expected_size: tuple[int, int] | None = None,
 ):
     """Read and decode one file (``item`` a path), or take a video's frame (``item`` its
-    ImageRecord); gather its split evidence, or detect when the split is known.
+    ImageRecord); gather its split evidence, or detect when the split is known. A file
+    whose header gives another size than ``expected_size`` is not decoded.
 
     Never raises for a bad file: returns ``(path, record, split_evidence, error,
     detection)`` with ``error`` set instead.
@@ -213,7 +215,7 @@ def _read_task(
     if isinstance(item, str):
         path = item
         try:
-            record = read_image_file(path, image_set)
+            record = read_image_file(path, image_set, expected_size=expected_size)
         except EndomeasureError as exc:
             return path, None, None, exc.what, None
     else:
@@ -412,7 +414,10 @@ def _read_and_detect(items, image_set, board_name, given_split, before: _Snapsho
         # With the split known, each worker reads and detects in one go.
         reads = runner.run(
             _read_task,
-            [(item, image_set, want_split, board_name, known_split, method) for item in items],
+            [
+                (item, image_set, want_split, board_name, known_split, method, before.image_size)
+                for item in items
+            ],  # fmt: skip
             tick("reading" if want_split else "detecting", len(items)),
         )
         records, detections = _check_reads(reads, before.image_size, before.images, results)
