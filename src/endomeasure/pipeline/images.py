@@ -83,9 +83,10 @@ def add_images(
     ------
     BadInputError
         No image given (or folders without image files), unreadable files, images
-        beyond the size limits (read from their headers), two files with one name, or images of different sizes (all
-        images of a session come from one sensor, so they share one size); for videos:
-        an unreadable or truncated file, no board to pick with, no frame worth keeping.
+        beyond the size limits (read from their headers), two files with one name, or
+        images of different sizes (all images of a session come from one sensor, so
+        they share one size); for videos: an unreadable or truncated file, no board to
+        pick with, no frame worth keeping.
     """
     if frame_step is not None and int(frame_step) < 1:
         raise BadInputError(f"--frame-step must be at least 1, not {frame_step}")
