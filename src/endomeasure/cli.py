@@ -442,6 +442,13 @@ def parse_depths(text: str) -> list[float]:
             a, b, c = (float(x) for x in s.split(":"))
             if not (c > 0 and b >= a):
                 raise ValueError
+            n_planes = math.floor((b - a) / c) + 1  # before arange allocates them
+            if not n_planes <= defaults.MAX_MAP_DEPTHS:
+                raise _bad_input(
+                    f"the depths {text!r} make {n_planes:g} planes, more than "
+                    f"{defaults.MAX_MAP_DEPTHS}, more than a map can show",
+                    hint="give a larger STEP",
+                )
             depths = np.arange(a, b + 0.5 * c, c)
         else:
             depths = np.array([float(x) for x in s.split(",")])

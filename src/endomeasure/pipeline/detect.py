@@ -31,6 +31,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from endomeasure import defaults
 from endomeasure.conventions import Half
 from endomeasure.errors import BadInputError, EndomeasureError
 from endomeasure.io.video import is_video_file
@@ -620,6 +621,13 @@ def detect_images(
         )
     if int(workers) < 1:
         raise BadInputError(f"--workers must be at least 1, not {workers}")
+    most = defaults.MAX_WORKERS_PER_CPU * (os.cpu_count() or 1)
+    if int(workers) > most:
+        raise BadInputError(
+            f"--workers {workers} is more than {defaults.MAX_WORKERS_PER_CPU} per CPU "
+            f"({most} on this machine): more processes only add memory and start-up time",
+            hint=f"give at most --workers {most}",
+        )
     if frame_step is not None and int(frame_step) < 1:
         raise BadInputError(f"--frame-step must be at least 1, not {frame_step}")
     session_path = Path(session_path)

@@ -408,6 +408,10 @@ def measure_points(
 
     request = _checked_request(kind, left, right, warn_percent, plot)
     n = _check_count(request, kind)  # before any image is read
+    if request.search:
+        from endomeasure.measure.correspondence import MatchSettings
+
+        MatchSettings(patch=patch)  # the patch size checked before any work
     plot = _checked_plot(plot, session, store)
     with open_session(session) as reader:
         reader.image_info(image)  # an unknown image is a BadInputError listing the images

@@ -17,6 +17,7 @@ SPEC section 8, the paper's Section 4.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -90,6 +91,16 @@ class NoiseAssumptions:
         if self.method not in METHODS:
             raise BadInputError(
                 f"unknown method {self.method!r}", hint=f"use one of {', '.join(METHODS)}"
+            )
+        for name in ("rho_images", "rho_points"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value)):
+                raise BadInputError(f"--{name.replace('_', '-')} must be a number, not {value}")
+        if self.n_samples is not None and not 100 <= int(self.n_samples) <= defaults.MAX_MC_SAMPLES:
+            raise BadInputError(
+                f"--samples {self.n_samples} is outside 100-{defaults.MAX_MC_SAMPLES:.0e}: fewer "
+                "give no quantiles, more than that take minutes and gigabytes for no precision",
+                hint="the default 20000 suits most uses",
             )
 
     def image_noise(self, cm, what: str):
@@ -452,6 +463,21 @@ def predict_map(
     n_u, n_v = grid
     if n_u < 2 or n_v < 2:
         raise BadInputError(f"the map grid needs at least 2x2 points, got {n_u}x{n_v}")
+    if not (math.isfinite(size_mm) and size_mm > 0):
+        raise BadInputError(f"the template size must be a positive number of mm, not {size_mm}")
+    n_planes = MAP_PLANES if depths is None else len(depths)
+    if n_planes > defaults.MAX_MAP_DEPTHS:
+        raise BadInputError(
+            f"{n_planes} depth planes is more than {defaults.MAX_MAP_DEPTHS}, more than a map "
+            "can show",
+            hint="give fewer --depths",
+        )
+    if n_u * n_v * n_planes > defaults.MAX_MAP_POINTS:
+        raise BadInputError(
+            f"a map of {n_u}x{n_v} points on {n_planes} planes has {n_u * n_v * n_planes} "
+            f"points, more than {defaults.MAX_MAP_POINTS}: it would run for hours",
+            hint="give a coarser --grid or fewer --depths",
+        )
     plot, csv = checked_outputs(
         [(plot, "plot", PLOT_SUFFIXES), (csv, "CSV file", None)], inputs=[session, model_file]
     )
