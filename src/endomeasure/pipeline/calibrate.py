@@ -148,12 +148,23 @@ def load_calibration_inputs(session: str | Path):
                 hint="run `endomeasure detect` first",
             )
         calib_images = set(s.image_names("calib"))
+        other_images = set(s.image_names()) - calib_images
         boards = {name: parse_board_spec(b.spec).object_points for name, b in s.boards().items()}
         detections = s.detections()
+    # Detections of test and scene images never enter a calibration (the board test would
+    # then judge the model on its own data); those of images not embedded (a session of
+    # detections only) have no set and are taken.
+    usable = [det for det in detections if det.image not in other_images]
+    if detections and not usable:
+        raise BadInputError(
+            "the session has no calibration images: its detections are all of test or "
+            "scene images",
+            path=str(session),
+            hint="add calibration images with `endomeasure detect SESSION IMAGES --board "
+            "SPEC --set calib`",
+        )
     by_view: dict[tuple[str, str], dict[Half, Any]] = {}
-    for det in detections:
-        if calib_images and det.image not in calib_images:
-            continue
+    for det in usable:
         by_view.setdefault((det.image, det.board), {})[Half.parse(det.half)] = det
     boards_per_image: dict[str, int] = {}
     for image, _ in by_view:
