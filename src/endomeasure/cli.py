@@ -388,6 +388,20 @@ def main() -> None:
 # --------------------------------------------------------------------------- values
 
 
+def _refuse_given(ctx: typer.Context, names: tuple[str, ...], where: str, hint: str) -> None:
+    """A BadInputError naming the options among ``names`` (parameter names) that the
+    command line set although they have no effect ``where``: never silently ignored."""
+    flags = []
+    for param in ctx.command.params:
+        if param.name in names:
+            source = ctx.get_parameter_source(param.name)
+            if source is not None and source.name not in ("DEFAULT", "DEFAULT_MAP"):
+                flags.append(max(param.opts, key=len))
+    if flags:
+        verb = "has" if len(flags) == 1 else "have"
+        raise _bad_input(f"{', '.join(flags)} {verb} no effect {where}", hint=hint)
+
+
 def _bad_input(what: str, hint: str | None = None) -> EndomeasureError:
     from endomeasure.errors import BadInputError
 
@@ -963,6 +977,7 @@ def export(
 
 @command("measure")
 def measure(
+    ctx: typer.Context,
     session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],
     model: Annotated[
         str,
@@ -1025,11 +1040,15 @@ def measure(
     square areas on every test image, mean error and std per zone, kind and model.
     """
     if board_test:
+        points_only = ("image", "left", "right", "kind", "warn_percent", "sigma", "patch")
+        _refuse_given(ctx, points_only, "with --board-test", "leave them out")
         _measure_board_test(session, model, zone_mm, plot, json_output)
         return
 
     from endomeasure.errors import BadInputError
     from endomeasure.pipeline.measure import MatchRefusedError, measure_points
+
+    _refuse_given(ctx, ("zone_mm",), "without --board-test", "leave it out")
 
     if image is None:
         raise BadInputError("a measurement needs --image NAME", hint="or use --board-test")
@@ -1219,6 +1238,7 @@ def _render_board_test(console: Console, report: Any) -> None:
 
 @command("predict-error")
 def predict_error(
+    ctx: typer.Context,
     session: Annotated[
         Path | None,
         typer.Argument(
@@ -1288,6 +1308,18 @@ def predict_error(
     modes = [board_test, measurement is not None, map_mode]
     if sum(modes) != 1:
         raise BadInputError("choose one mode: --board-test, --measurement ID or --map")
+    map_only = ("model_file", "template", "size_mm", "depths", "grid", "csv")
+    if board_test:
+        _refuse_given(ctx, map_only, "with --board-test", "those options are for --map")
+    elif measurement is not None:
+        _refuse_given(ctx, ("model", *map_only, "zone_mm", "plot"), "with --measurement",
+                      "a stored measurement keeps its model and points")  # fmt: skip
+    else:
+        _refuse_given(ctx, ("zone_mm",), "with --map", "it belongs to --board-test")
+        if model_file is not None:
+            _refuse_given(ctx, ("model",), "with --model-file", "the file is the model")
+    if method != "mc":
+        _refuse_given(ctx, ("samples",), f"with --method {method}", "it is for --method mc")
     if session is None and not (map_mode and model_file is not None):
         raise BadInputError("a session is needed (only --map --model-file works without one)")
     console = _stderr_console()

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from endomeasure.errors import BadInputError
+from endomeasure.io.outputs import file_kind, is_regular_file
 
 __all__ = [
     "EXPORT_FORMATS",
@@ -51,6 +52,10 @@ def model_document(model, extras: dict[str, Any] | None = None) -> dict[str, Any
 def read_model_document(path: str | Path, what: str = "model file") -> dict[str, Any]:
     """The JSON document of a model file (as :func:`export_model` writes it, or wrapped
     under ``camera_model`` as the simulator's truth files hold it)."""
+    if os.path.exists(path) and not is_regular_file(path):  # a FIFO would block the read
+        raise BadInputError(
+            f"the {what} is a {file_kind(os.stat(path).st_mode)}, not a file", path=str(path)
+        )
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, ValueError) as exc:

@@ -246,11 +246,19 @@ def load_calibrated_model(
     """
     names = reader.model_names()
     if name not in names:
+        from endomeasure.models import MODELS
+
         held = ", ".join(names) if names else "none"
+        if name in MODELS:
+            hint = f"run `endomeasure calibrate {session} --model {name}` first"
+        elif names:
+            hint = f"give --model one of the stored models: {held}"
+        else:  # an unknown name: suggest what can be calibrated, not the name itself
+            hint = f"calibrate one of the models {', '.join(MODELS)} first"
         raise BadInputError(
             f"the session has no calibrated {name!r} model (it holds: {held})",
             path=str(session),
-            hint=f"run `endomeasure calibrate {session} --model {name}` first",
+            hint=hint,
         )
     record = reader.model(name)
     if not allow_failed:

@@ -23,6 +23,7 @@ import numpy as np
 
 from endomeasure.errors import BadInputError
 from endomeasure.io.image_header import checked_image_size
+from endomeasure.io.outputs import file_kind
 
 __all__ = [
     "VIDEO_SUFFIXES",
@@ -64,7 +65,10 @@ def _open(path: Path):
     import cv2
 
     if not path.is_file():
-        raise BadInputError("no such video file", path=str(path))
+        what = "no such video file"
+        if os.path.exists(path):
+            what = f"a {file_kind(os.stat(path).st_mode)}, not a video file"
+        raise BadInputError(what, path=str(path))
     # Decoder complaints would only add lines to the one-line error the caller raises.
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)

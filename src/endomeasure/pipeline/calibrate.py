@@ -157,8 +157,7 @@ def load_calibration_inputs(session: str | Path):
     usable = [det for det in detections if det.image not in other_images]
     if detections and not usable:
         raise BadInputError(
-            "the session has no calibration images: its detections are all of test or "
-            "scene images",
+            "the session has no calibration images: its detections are all of test or scene images",
             path=str(session),
             hint="add calibration images with `endomeasure detect SESSION IMAGES --board "
             "SPEC --set calib`",
