@@ -278,6 +278,13 @@ def load_calibrated_model(
         order = [stored_names.index(n) for n in free]
         cov = c[np.ix_(order, order)]
     variance = record.attrs.get("residual_variance")
+    if variance is not None and not isinstance(variance, (int, float)):
+        raise BadInputError(
+            f"the stored residual variance of model {name!r} is not a number "
+            f"({type(variance).__name__})",
+            path=str(session),
+            hint=f"the session is damaged or crafted; re-run `endomeasure calibrate {session}`",
+        )
     sigma = (
         float(np.sqrt(variance))
         if variance is not None and np.isfinite(variance) and variance > 0

@@ -345,7 +345,7 @@ def _check_name(name: str, what: str) -> str:
 
 def _attr_to_python(value: Any) -> Any:
     if isinstance(value, bytes):
-        return value.decode("utf-8")
+        return value.decode("utf-8", errors="replace")
     if isinstance(value, np.ndarray):
         if value.dtype.kind in "OSU":
             return [v.decode("utf-8") if isinstance(v, bytes) else str(v) for v in value.ravel()]
@@ -1158,7 +1158,13 @@ def open_session(
     # because writers replace it rather than change it.
     with SessionLock(path, exclusive=False, timeout=lock_timeout, required=False):
         h5 = _open_h5(path, "r")
-    return Session(path, h5)
+    session = Session(path, h5)
+    try:
+        session.metadata()  # a crafted image size or split is refused before any read
+    except BaseException:
+        session.close()
+        raise
+    return session
 
 
 def _fsync_path(path: Path, directory: bool = False) -> None:
@@ -1224,8 +1230,9 @@ def edit_session(
                 path=str(path),
                 hint="check the path, or start a session with a command that creates one",
             )
-        if exists:
-            _open_h5(path, "r").close()  # validate before copying: clear errors, no work
+        if exists:  # validate before copying: clear errors, no work
+            with Session(path, _open_h5(path, "r")) as current:
+                current.metadata()
         try:
             fd, tmp_name = tempfile.mkstemp(
                 dir=path.parent, prefix=f".{path.name}.", suffix=_TMP_SUFFIX

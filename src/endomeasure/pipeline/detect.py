@@ -630,7 +630,10 @@ def detect_images(
         )
     if frame_step is not None and int(frame_step) < 1:
         raise BadInputError(f"--frame-step must be at least 1, not {frame_step}")
+    from endomeasure.io.outputs import checked_session_target
+
     session_path = Path(session_path)
+    checked_session_target(session_path, create=True)  # before reading any image
     before = _snapshot(session_path)
     if split is not None and before.split is not None and split != before.split:
         if before.has_detections:

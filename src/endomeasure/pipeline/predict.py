@@ -315,6 +315,10 @@ def predict_stored_measurement(
     from endomeasure.measure.kinds import kind_spec
     from endomeasure.measure.predict import PredictedError, predict_measurement_error
 
+    if store:
+        from endomeasure.io.outputs import checked_session_target
+
+        checked_session_target(session, create=False)
     with open_session(session) as reader:
         stored = stored_measurement(reader.record(MEASUREMENT_RECORD, measurement))
         name = model or stored.model
