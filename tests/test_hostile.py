@@ -44,19 +44,24 @@ MAX_REFUSAL_RSS_MB = 300
 # ----------------------------------------------------------------------------- the world
 
 
-def _png_header_only(path: Path, width: int, height: int) -> None:
-    """A PNG whose header declares ``width`` x ``height`` and whose data is a stub: the
-    size must be refused from the header, before a decoder would allocate the pixels."""
+def _png_header_only(path: Path, width: int, height: int, iccp: bool = False) -> None:
+    """A grey PNG of ``width`` x ``height``: whole for small sizes, otherwise with a stub
+    of data, as the size must be refused from the header before a decoder would
+    allocate the pixels. ``iccp`` adds a colour profile too short for libpng, which
+    then warns on the process's stderr."""
 
     def chunk(kind: bytes, data: bytes) -> bytes:
         crc = zlib.crc32(kind + data) & 0xFFFFFFFF
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", crc)
 
     ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
-    idat = zlib.compress(b"\x00" * 1024)
+    rows = height if width * height <= 1 << 20 else 1
+    idat = zlib.compress((b"\x00" + b"\x80" * width) * rows)
+    profile = chunk(b"iCCP", b"bogus\x00\x00" + zlib.compress(b"short")) if iccp else b""
     path.write_bytes(
-        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
-    )
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + profile + chunk(b"IDAT", idat)
+        + chunk(b"IEND", b"")
+    )  # fmt: skip
 
 
 def _crafted(source: Path, target: Path, edit) -> Path:
@@ -141,6 +146,9 @@ def world(tmp_path_factory):
     small = images / "small"
     small.mkdir()
     cv2.imwrite(str(small / "s.png"), np.full((24, 32), 128, np.uint8))
+    warns = images / "warns"  # a PNG whose bad colour profile makes libpng warn on stderr
+    warns.mkdir()
+    _png_header_only(warns / "w.png", 32, 24, iccp=True)
     flat = images / "flat"
     flat.mkdir()
     cv2.imwrite(str(flat / "f.png"), np.full((480, 640), 128, np.uint8))
@@ -775,3 +783,13 @@ def test_the_console_entry_point_prints_one_line(world, args):
     assert len(errors) == 1, result.stderr
     assert "╭" not in result.stderr and "Usage:" not in result.stderr
     assert "libpng" not in result.stderr and "Warning" not in result.stderr
+
+
+def test_library_warnings_never_reach_stderr(world, tmp_path):
+    session = tmp_path / "w.h5"
+    result = _run_module("add-images", str(session), f"{world['I']}/warns")
+    assert result.returncode == 0, result.stderr
+    # only the summary (rich wraps it at the terminal width)
+    assert " ".join(result.stderr.split()) == f"{session}: added 1 calib image(s)"
+    debug = _run_module("--debug", "add-images", str(tmp_path / "d.h5"), f"{world['I']}/warns")
+    assert "libpng warning" in debug.stderr  # the warning exists: --debug lets it through
