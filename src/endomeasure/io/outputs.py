@@ -29,6 +29,7 @@ from endomeasure.errors import BadInputError, SessionError
 
 __all__ = [
     "PLOT_SUFFIXES",
+    "SESSION_TMP_SUFFIX",
     "checked_output",
     "checked_output_dir",
     "checked_outputs",
@@ -72,13 +73,15 @@ def _same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
         return False
 
 
-def _probe_folder(folder: Path, path: Path, what: str) -> None:
+def _probe_folder(
+    folder: Path, path: Path, what: str, prefix: str = ".endomeasure-probe-", suffix: str = ""
+) -> None:
     """Refuse a folder where no file can be created, by creating (and removing) one.
 
     ``os.access`` is not enough: it says yes to root everywhere, also in ``/proc``.
     """
     try:
-        fd, name = tempfile.mkstemp(dir=folder, prefix=".endomeasure-probe-")
+        fd, name = tempfile.mkstemp(dir=folder, prefix=prefix, suffix=suffix)
     except OSError as exc:
         raise BadInputError(
             f"cannot write the {what} there: no file can be created in its folder "
@@ -230,7 +233,12 @@ def checked_output_dir(path: str | os.PathLike, what: str, *, create_parents: bo
     return path
 
 
-def checked_session_target(path: str | os.PathLike, *, create: bool) -> Path:
+SESSION_TMP_SUFFIX = ".endomeasure-tmp"
+"""Suffix of a session's temporary files (``.<session name>.*<suffix>``): a writer removes
+those a killed edit left, and the folder probe of a session is named the same way."""
+
+
+def checked_session_target(path: str | os.PathLike, *, create: bool, probe: bool = True) -> Path:
     """The file an edit of the session ``path`` writes, or a :class:`BadInputError`.
 
     A symlink is resolved, so the edit replaces its target and keeps the link. A session
@@ -238,7 +246,8 @@ def checked_session_target(path: str | os.PathLike, *, create: bool) -> Path:
     new one (a crash can then never leave a half-written session), which would split the
     links, leaving the other names on the old content. An existing path must be a
     regular file (a FIFO or a device is refused before anything opens it); a new one
-    needs an existing, writable folder.
+    needs an existing, writable folder (``probe`` creates and removes a file there to
+    know; the edit itself, which creates its copy there anyway, does without).
     """
     given = Path(path)
     target = Path(os.path.realpath(given)) if given.is_symlink() else given
@@ -275,8 +284,9 @@ def checked_session_target(path: str | os.PathLike, *, create: bool) -> Path:
             path=str(given),
             hint="create the directory first",
         )
-    try:
-        _probe_folder(target.parent, given, "session")
-    except BadInputError as exc:
-        raise SessionError(exc.what, path=str(given), hint=exc.hint) from None
+    if probe:
+        try:
+            _probe_folder(target.parent, given, "session", f".{target.name}.", SESSION_TMP_SUFFIX)
+        except BadInputError as exc:
+            raise SessionError(exc.what, path=str(given), hint=exc.hint) from None
     return target

@@ -87,7 +87,12 @@ from endomeasure.errors import (
 )
 from endomeasure.io._lock import DEFAULT_LOCK_TIMEOUT_S, SessionLock
 from endomeasure.io.image_header import checked_image_size
-from endomeasure.io.outputs import checked_session_target, file_kind, is_regular_file
+from endomeasure.io.outputs import (
+    SESSION_TMP_SUFFIX,
+    checked_session_target,
+    file_kind,
+    is_regular_file,
+)
 
 __all__ = [
     "FORMAT_NAME",
@@ -115,7 +120,7 @@ _NODE_VERSION = "1.0"
 IMAGE_SETS = ("calib", "test", "scene")
 """Image sets: calibration images, test images of a known board, scenes to measure."""
 
-_TMP_SUFFIX = ".endomeasure-tmp"
+_TMP_SUFFIX = SESSION_TMP_SUFFIX
 _NAME_RE = re.compile(r"^[^/\x00]+$")
 _RESERVED_ATTRS = frozenset({"type", "version", "json_attrs"})
 _UNITS_PREFIX = "units:"
@@ -1220,7 +1225,7 @@ def edit_session(
     """
     # a symlink is written through (its target replaced, the link kept); a hard-linked
     # session, a FIFO, a device or an unwritable folder are refused before any work
-    path = checked_session_target(path, create=create)
+    path = checked_session_target(path, create=create, probe=False)
     with SessionLock(path, exclusive=True, timeout=lock_timeout):
         _remove_stale_temps(path)
         exists = path.exists()
