@@ -1305,21 +1305,7 @@ def predict_error(
     """
     from endomeasure.errors import BadInputError
 
-    modes = [board_test, measurement is not None, map_mode]
-    if sum(modes) != 1:
-        raise BadInputError("choose one mode: --board-test, --measurement ID or --map")
-    map_only = ("model_file", "template", "size_mm", "depths", "grid", "csv")
-    if board_test:
-        _refuse_given(ctx, map_only, "with --board-test", "those options are for --map")
-    elif measurement is not None:
-        _refuse_given(ctx, ("model", *map_only, "zone_mm", "plot"), "with --measurement",
-                      "a stored measurement keeps its model and points")  # fmt: skip
-    else:
-        _refuse_given(ctx, ("zone_mm",), "with --map", "it belongs to --board-test")
-        if model_file is not None:
-            _refuse_given(ctx, ("model",), "with --model-file", "the file is the model")
-    if method != "mc":
-        _refuse_given(ctx, ("samples",), f"with --method {method}", "it is for --method mc")
+    _check_predict_mode(ctx, board_test, measurement, map_mode, model_file, method)
     if session is None and not (map_mode and model_file is not None):
         raise BadInputError("a session is needed (only --map --model-file works without one)")
     console = _stderr_console()
@@ -1369,6 +1355,27 @@ def predict_error(
         _print_json(r.to_dict())
     else:
         _render_map(console, r)
+
+
+def _check_predict_mode(ctx, board_test, measurement, map_mode, model_file, method) -> None:
+    """One mode of ``predict-error``, and no option that has no effect in it."""
+    from endomeasure.errors import BadInputError
+
+    modes = [board_test, measurement is not None, map_mode]
+    if sum(modes) != 1:
+        raise BadInputError("choose one mode: --board-test, --measurement ID or --map")
+    map_only = ("model_file", "template", "size_mm", "depths", "grid", "csv")
+    if board_test:
+        _refuse_given(ctx, map_only, "with --board-test", "those options are for --map")
+    elif measurement is not None:
+        _refuse_given(ctx, ("model", *map_only, "zone_mm", "plot"), "with --measurement",
+                      "a stored measurement keeps its model and points")  # fmt: skip
+    else:
+        _refuse_given(ctx, ("zone_mm",), "with --map", "it belongs to --board-test")
+        if model_file is not None:
+            _refuse_given(ctx, ("model",), "with --model-file", "the file is the model")
+    if method != "mc":
+        _refuse_given(ctx, ("samples",), f"with --method {method}", "it is for --method mc")
 
 
 def _noise_text(noise: Any) -> str:
