@@ -81,6 +81,17 @@ def _replace_image(h5, name: str, shape, dtype) -> None:
         dset.attrs[key] = value
 
 
+def _huge_detection(h5) -> None:
+    """The pixels of one stored detection, declared as 1e9 corners (empty chunks on disk)."""
+    node = h5["detections"][BOARD]
+    pixels = node[sorted(node.keys())[0]]["left"]
+    attrs = dict(pixels["pixels"].attrs)
+    del pixels["pixels"]
+    dset = pixels.create_dataset("pixels", shape=(10**9, 2), dtype="f8", chunks=(4096, 2))
+    for key, value in attrs.items():
+        dset.attrs[key] = value
+
+
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
     """Paths for the cases: ``{S}`` the calibrated session and its neighbours."""
@@ -118,6 +129,7 @@ def world(tmp_path_factory):
     )
     _crafted(session, data / "shape.h5", lambda h5: _replace_image(h5, "scene", (480, 320), "u1"))
     _crafted(session, data / "float.h5", lambda h5: _replace_image(h5, "scene", (480, 640), "f8"))
+    _crafted(session, data / "huge-detection.h5", _huge_detection)
     _crafted(
         session,
         data / "variance.h5",
@@ -459,6 +471,12 @@ CRAFTED = cases(
         ["measure", "{D}/huge-meta.h5", "--board-test"],
         2,
         "beyond the limit",
+    ),
+    (
+        "board-test-huge-detection",
+        ["measure", "{D}/huge-detection.h5", "--board-test"],
+        2,
+        "declares",
     ),
     ("predict-string-variance", ["predict-error", "{D}/variance.h5", "--map"], 2, "not a number"),
 )

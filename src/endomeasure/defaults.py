@@ -14,6 +14,7 @@ __all__ = [
     "MAX_PATCH_PX",
     "MAX_POINTS_PER_MEASUREMENT",
     "MAX_SIGMA_PX",
+    "MAX_STORED_ELEMENTS",
     "MAX_WORKERS_PER_CPU",
     "MIN_ZONE_MM",
     "PATCH_PX",
@@ -77,3 +78,8 @@ operator clicks, few enough that the unscented transform's sigma points stay fas
 MAX_SIGMA_PX = 100.0
 """Largest image noise (``--sigma``, px): detected corners scatter by well under a pixel;
 at a hundred pixels (a sixth of a half) no propagation of the noise means anything."""
+
+MAX_STORED_ELEMENTS = 50_000_000
+"""Most elements of any array a session stores besides images (checked against the
+dataset's declared shape before it is read): the largest, a calibration's per-corner
+residuals and covariances, hold a few million; 5e7 float64 are 400 MB."""

@@ -78,7 +78,7 @@ import numpy as np
 
 from endomeasure import __version__
 from endomeasure.conventions import Half
-from endomeasure.defaults import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE
+from endomeasure.defaults import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE, MAX_STORED_ELEMENTS
 from endomeasure.errors import (
     BadInputError,
     EndomeasureError,
@@ -444,11 +444,24 @@ def _write_array(group: Any, name: str, value: Any, unit: str | None = None) -> 
         dset.attrs["units"] = str(unit)
 
 
+def _read(dset: Any) -> Any:
+    """All of a dataset, after checking its declared size: a crafted shape is refused
+    (as damage) before h5py allocates it."""
+    if dset.size > MAX_STORED_ELEMENTS:
+        raise ValueError(
+            f"the dataset {dset.name} declares {dset.size:.3g} elements, more than the "
+            f"{MAX_STORED_ELEMENTS:.3g} any session holds"
+        )
+    return dset[()]
+
+
 def _read_array(dset: Any) -> np.ndarray:
+    if dset.size > MAX_STORED_ELEMENTS:
+        _read(dset)  # raises
     if h5py.check_string_dtype(dset.dtype) is not None:
         data = dset.asstr()[()]
         return np.array(data, dtype=str) if isinstance(data, np.ndarray) else np.array(data)
-    return np.asarray(dset[()])
+    return np.asarray(_read(dset))
 
 
 def _read_arrays(
@@ -809,10 +822,10 @@ class Session:
                     if not self._check_node(node, "detection"):
                         continue
                     attrs, _ = _read_attrs(node)
-                    pixels = np.asarray(node["pixels"][()], dtype=np.float64).reshape(-1, 2)
+                    pixels = np.asarray(_read(node["pixels"]), dtype=np.float64).reshape(-1, 2)
                     covariance = None
                     if "covariance" in node:
-                        covariance = np.asarray(node["covariance"][()], dtype=np.float64)
+                        covariance = np.asarray(_read(node["covariance"]), dtype=np.float64)
                         if covariance.shape != (len(pixels), 2, 2):
                             raise _damaged(
                                 str(self.path),
@@ -826,7 +839,7 @@ class Session:
                             image=image_name,
                             board=board_name,
                             half=half_value,
-                            ids=np.asarray(node["ids"][()], dtype=np.int32),
+                            ids=np.asarray(_read(node["ids"]), dtype=np.int32),
                             pixels=pixels,
                             quality=float(attrs.pop("quality", math.nan)),
                             failure=str(attrs.pop("failure", "")),
@@ -854,7 +867,7 @@ class Session:
         return ModelRecord(
             name=name,
             registry_name=registry_name,
-            params=np.asarray(node["params"][()], dtype=np.float64),
+            params=np.asarray(_read(node["params"]), dtype=np.float64),
             param_names=tuple(str(s) for s in _read_array(node["param_names"])),
             config=config,
             arrays=arrays,
