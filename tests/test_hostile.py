@@ -476,7 +476,7 @@ CRAFTED = cases(
         "board-test-huge-detection",
         ["measure", "{D}/huge-detection.h5", "--board-test"],
         2,
-        "declares",
+        "any session holds",
     ),
     ("predict-string-variance", ["predict-error", "{D}/variance.h5", "--map"], 2, "not a number"),
 )
