@@ -17,7 +17,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import resource
 import shutil
 import struct
 import subprocess
@@ -775,11 +774,40 @@ def _run_module(*args: str) -> subprocess.CompletedProcess:
     )
 
 
-def test_a_huge_png_is_refused_from_its_header_in_a_small_process(world):
-    result = _run_module("add-images", f"{world['D']}/new.h5", f"{world['I']}/big")
+_PEAK_RSS = """
+import resource, subprocess, sys
+done = subprocess.run([sys.executable, "-m", "endomeasure", *sys.argv[1:]], capture_output=True,
+                      text=True)
+sys.stdout.write(str(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) + "\\n")
+sys.stderr.write(done.stderr)
+sys.exit(done.returncode)
+"""
+
+
+def _run_measured(*args: str) -> tuple[subprocess.CompletedProcess, float]:
+    """Run the command line in a fresh process; its result and its peak memory, MB (a
+    wrapper process has it as its only child, so no other test's child counts)."""
+    result = subprocess.run(
+        [sys.executable, "-c", _PEAK_RSS, *args], capture_output=True, text=True, timeout=60
+    )
+    return result, int(result.stdout.split()[-1]) / 1024  # ru_maxrss is in kB on Linux
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["add-images", "{D}/new.h5", "{I}/big"],
+        ["detect", "{D}/new.h5", "{I}/big", "--board", BOARD],
+        ["measure", "{D}/huge-image.h5", "--image", "scene", "--left", "300,240", "--left",
+         "310,240"],
+    ],
+    ids=["png-add-images", "png-detect", "crafted-session-image"],
+)  # fmt: skip
+def test_huge_images_are_refused_in_a_small_process(world, args):
+    result, peak_mb = _run_measured(*[a.format(**world) for a in args])
     assert result.returncode == 2
-    assert result.stderr.count("\n") == 1 and "beyond the limit" in result.stderr
-    peak_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024  # kB on Linux
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "beyond the limit" in errors[0], result.stderr
     assert peak_mb < MAX_REFUSAL_RSS_MB
     assert not (world["data"] / "new.h5").exists()
 
@@ -811,3 +839,14 @@ def test_library_warnings_never_reach_stderr(world, tmp_path):
     assert " ".join(result.stderr.split()) == f"{session}: added 1 calib image(s)"
     debug = _run_module("--debug", "add-images", str(tmp_path / "d.h5"), f"{world['I']}/warns")
     assert "libpng warning" in debug.stderr  # the warning exists: --debug lets it through
+
+
+def test_warnings_and_native_stderr_are_captured_inside_a_command(capfd):
+    with cli._error_boundary():
+        import warnings
+
+        warnings.warn("a library's warning", RuntimeWarning, stacklevel=1)
+        np.log(np.zeros(1))  # numpy's own RuntimeWarning
+        os.write(2, b"a native library's message\n")
+    captured = capfd.readouterr()
+    assert captured.err == "" and captured.out == ""
