@@ -211,7 +211,7 @@ def _quiet_libraries():
         except (AttributeError, OSError, ValueError):  # a test runner's buffer
             uses_fd2 = False
         if uses_fd2:
-            sys.stderr = open(  # noqa: SIM115 (closed in the finally below)
+            sys.stderr = open(  # closed in the finally below
                 real_fd,
                 "w",
                 buffering=1,
