@@ -175,17 +175,25 @@ def world(tmp_path_factory):
         "I": str(images),
         "O": str(out),
         "data": data,
+        "root": root,
     }
 
 
-def _hashes(folder: Path) -> dict[str, str]:
-    """SHA-256 of every regular file in ``folder`` (lock sidecars aside)."""
+def _hashes(root: Path) -> dict[str, str]:
+    """Everything under ``root`` (lock sidecars aside): the SHA-256 of each regular file,
+    the target of each link, and the kind of everything else, so that a file replaced,
+    changed, created or deleted, or a link turned into a file, shows."""
     out = {}
-    for path in sorted(folder.iterdir()):
-        if path.name.endswith(".lock") or path.is_symlink() or not path.is_file():
+    for path in sorted(root.rglob("*")):
+        key = str(path.relative_to(root))
+        if path.name.endswith(".lock"):
             continue
-        out[path.name] = hashlib.sha256(path.read_bytes()).hexdigest()
-    out["links"] = ",".join(sorted(p.name for p in folder.iterdir() if p.is_symlink()))
+        if path.is_symlink():
+            out[key] = "link to " + os.readlink(path)
+        elif path.is_file():
+            out[key] = hashlib.sha256(path.read_bytes()).hexdigest()
+        else:
+            out[key] = "directory" if path.is_dir() else "special"
     return out
 
 
@@ -206,7 +214,7 @@ def _args(template: list[str], world: dict, json_output: bool) -> list[str]:
 
 def check_refusal(world, template, code, message, json_output):
     """Run one case and check the output contract (module docstring)."""
-    before = _hashes(world["data"])
+    before = _hashes(world["root"])
     args = _args(template, world, json_output)
     result = runner.invoke(cli.app, args)
     assert result.exit_code == code, (args, result.stderr, result.stdout)
@@ -223,7 +231,7 @@ def check_refusal(world, template, code, message, json_output):
         assert doc["exit_code"] == code and doc["error"] == errors[0].removeprefix("error: ")
     else:
         assert result.stdout == ""
-    assert _hashes(world["data"]) == before
+    assert _hashes(world["root"]) == before
     return errors[0]
 
 
