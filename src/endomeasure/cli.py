@@ -11,6 +11,22 @@ The ``@command()`` wrapper is the error boundary: an
 :class:`~endomeasure.errors.EndomeasureError` becomes one line ``error: ...`` on stderr
 and its exit code (0 success, 1 ran but failed its goal, 2 bad usage or bad input); any
 other exception is reported as a bug in one line; ``--debug`` adds the traceback.
+
+The output contract
+-------------------
+- stderr: messages only; a failure is exactly one line ``error: ...`` (a line longer
+  than 300 characters is cut in the middle of what went wrong, never in its hint). Usage
+  errors caught by the option parser (an unknown option, ``--workers abc``, a missing
+  argument) are such lines too, with exit 2, instead of click's box. Warnings of the
+  libraries (Python warnings, and whatever OpenCV, libpng, FFmpeg or HDF5 write to the
+  process's stderr) are captured and dropped, so they never mix with the messages;
+  ``--debug`` lets them through.
+- stdout with ``--json``: always exactly one strict JSON document (RFC 8259: a value
+  that is not finite is ``null``, never ``NaN``), also when the command fails: then it
+  holds ``"error"`` (the same text as the stderr line) and ``"exit_code"``, next to
+  whatever the command's report already had (the automatic matches of a refused
+  measurement, the per-image results of ``detect``). Without ``--json`` stdout stays
+  empty except for ``--help`` and ``--version``.
 """
 
 from __future__ import annotations
@@ -18,12 +34,17 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
+import math
+import os
 import sys
+import tempfile
 import traceback
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
+from typer.core import TyperGroup
 
 from endomeasure import __version__, defaults
 from endomeasure.errors import EndomeasureError
@@ -31,7 +52,47 @@ from endomeasure.errors import EndomeasureError
 if TYPE_CHECKING:
     from rich.console import Console
 
+ERROR_LINE_LIMIT = 300
+"""Characters of an error line: one terminal line or two, and a whole log entry."""
+
+
+def _usage_line(exc: Exception) -> str:
+    """A click usage error as the project's one line, with where to find help."""
+    text = exc.format_message() if hasattr(exc, "format_message") else str(exc)
+    ctx = getattr(exc, "ctx", None)
+    command = ctx.command_path if ctx is not None else "endomeasure"
+    return _compose(text.rstrip("."), f"see `{command} --help`")
+
+
+class _Group(TyperGroup):
+    """The command group, with click's usage errors turned into the project's one line."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        argv = list(sys.argv[1:] if args is None else args)
+        try:
+            result = super().main(argv, prog_name, complete_var, standalone_mode=False, **extra)
+        except typer.TyperException as exc:  # click's UsageError, BadParameter, FileError ...
+            if type(exc).__name__ == "NoArgsIsHelpError":  # bare `endomeasure`: the help,
+                help_text = exc.format_message()  # which rich has already printed
+                if help_text.strip():
+                    sys.stdout.write(help_text + "\n")
+                sys.exit(EXIT_USAGE)
+            line = _usage_line(exc)
+            if "--json" in argv:
+                _print_json({"error": line, "exit_code": EXIT_USAGE})
+            sys.stderr.write(f"error: {line}\n")
+            sys.stderr.flush()
+            sys.exit(EXIT_USAGE)
+        except typer.Abort:
+            sys.stderr.write("error: interrupted\n")
+            sys.exit(EXIT_INTERRUPTED)
+        sys.exit(result if isinstance(result, int) else 0)
+
+
 app = typer.Typer(
+    cls=_Group,
     name="endomeasure",
     help=(
         "3D measurement with prism-based stereo video endoscopes.\n\n"
@@ -46,10 +107,13 @@ app = typer.Typer(
 EXIT_BUG = 2
 """An unexpected exception is a bug; the job could not be done, as with bad input."""
 EXIT_INTERRUPTED = 130
+EXIT_USAGE = 2
 
 
 class _State:
     debug = False
+    json_output = False  # the running command was asked for --json
+    json_printed = False  # and has written its document
 
 
 _STATE = _State()
@@ -77,34 +141,125 @@ def _global_options(
     _STATE.debug = debug
 
 
-def _one_line(text: str, limit: int = 300) -> str:
-    text = " ".join(str(text).split())
-    return text if len(text) <= limit else text[: limit - 3] + "..."
+def _cut_middle(text: str, limit: int) -> str:
+    """``text`` in at most ``limit`` characters: its start and its end, the middle cut."""
+    if len(text) <= limit:
+        return text
+    keep = max(limit - 5, 2)
+    tail = (2 * keep) // 5
+    return text[: keep - tail] + " ... " + text[len(text) - tail :]
+
+
+def _one_line(text: str, limit: int = ERROR_LINE_LIMIT) -> str:
+    """``text`` on one line of at most ``limit`` characters, cut in the middle."""
+    return _cut_middle(" ".join(str(text).split()), limit)
+
+
+def _compose(
+    what: str, hint: str | None, path: str | None = None, limit: int = ERROR_LINE_LIMIT
+) -> str:
+    """``what [path]; hint`` in at most ``limit`` characters: what went wrong is cut in
+    its middle, so that its start and end, the file and the hint survive."""
+    what = " ".join(str(what).split())
+    tail = ""
+    if path:
+        tail += " [" + _cut_middle(" ".join(str(path).split()), limit // 3) + "]"
+    if hint:
+        tail += "; " + _cut_middle(" ".join(str(hint).split()), limit // 3)
+    return _cut_middle(what, limit - len(tail)) + tail
 
 
 def _fail(message: str, code: int, exc: BaseException) -> None:
     if _STATE.debug:
         traceback.print_exception(exc, file=sys.stderr)
-    sys.stderr.write(f"error: {_one_line(message)}\n")
+    if _STATE.json_output and not _STATE.json_printed:
+        _print_json({"error": message, "exit_code": code})
+    sys.stderr.write(f"error: {message}\n")
     sys.stderr.flush()
     raise typer.Exit(code)
 
 
+def _error_text(exc: EndomeasureError) -> str:
+    return _compose(exc.what, exc.hint, exc.path)
+
+
 @contextlib.contextmanager
-def _error_boundary():
-    """Turn exceptions into one line on stderr and an exit code (traceback with --debug)."""
-    try:
+def _quiet_libraries():
+    """Capture what the libraries would write to stderr while a command runs.
+
+    Python warnings are ignored; the process's file descriptor 2 (where OpenCV, libpng,
+    FFmpeg and HDF5 write from C, and where worker processes inherit it) points to a
+    scratch file, while ``sys.stderr`` keeps writing to the real stderr. With ``--debug``
+    nothing is captured.
+    """
+    if _STATE.debug:
         yield
+        return
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")  # read when cv2 is first imported
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            sys.stderr.flush()
+            real_fd = os.dup(2)
+            scratch = tempfile.TemporaryFile()
+        except OSError:  # no descriptors or no room for the scratch file: capture nothing
+            yield
+            return
+        python_stderr = sys.stderr
+        try:
+            uses_fd2 = python_stderr.fileno() == 2
+        except (AttributeError, OSError, ValueError):  # a test runner's buffer
+            uses_fd2 = False
+        if uses_fd2:
+            sys.stderr = open(  # closed in the finally below
+                real_fd,
+                "w",
+                buffering=1,
+                encoding=python_stderr.encoding,
+                errors="backslashreplace",
+                closefd=False,
+            )
+        os.dup2(scratch.fileno(), 2)
+        try:
+            yield
+        finally:
+            with contextlib.suppress(Exception):
+                sys.stderr.flush()
+            os.dup2(real_fd, 2)
+            if uses_fd2:
+                sys.stderr.close()
+                sys.stderr = python_stderr
+            os.close(real_fd)
+            scratch.close()
+
+
+@contextlib.contextmanager
+def _error_boundary(json_output: bool = False):
+    """Turn exceptions into one line on stderr and an exit code (traceback with --debug),
+    with the libraries' own warnings captured (:func:`_quiet_libraries`)."""
+    _STATE.json_output, _STATE.json_printed = bool(json_output), False
+    try:
+        with _quiet_libraries():
+            yield
     except typer.Exit:
         raise
     except EndomeasureError as exc:
-        _fail(exc.one_line(), exc.exit_code, exc)
+        _fail(_error_text(exc), exc.exit_code, exc)
     except KeyboardInterrupt as exc:
         _fail("interrupted; session files are left as they were", EXIT_INTERRUPTED, exc)
+    except MemoryError as exc:
+        _fail(
+            _compose("not enough memory for this command", "give smaller inputs or options"),
+            EXIT_USAGE,
+            exc,
+        )
     except Exception as exc:
         _fail(
-            f"internal error ({type(exc).__name__}: {exc}); this is a bug in endomeasure, "
-            "please report it; rerun as `endomeasure --debug ...` to see the traceback",
+            _compose(
+                f"internal error ({type(exc).__name__}: {exc})",
+                "this is a bug in endomeasure, please report it; rerun as "
+                "`endomeasure --debug ...` to see the traceback",
+            ),
             EXIT_BUG,
             exc,
         )
@@ -116,7 +271,7 @@ def command(name: str | None = None, **kwargs: Any):
     def decorate(function):
         @functools.wraps(function)
         def wrapper(*args, **kw):
-            with _error_boundary():
+            with _error_boundary(json_output=kw.get("json_output", False)):
                 return function(*args, **kw)
 
         app.command(name, **kwargs)(wrapper)
@@ -147,10 +302,34 @@ def _progress(console: Console, label: str, enabled: bool = True):
         yield lambda done, total: progress.update(task, completed=done, total=total)
 
 
+def _json_safe(value: Any) -> Any:
+    """``value`` with only what strict JSON holds: a float that is not finite becomes
+    None, NumPy scalars and arrays plain numbers and lists, bytes text, tuples lists,
+    anything else its ``str``."""
+    if value is None or isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, int):
+        return int(value)
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, set, frozenset)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (bytes, bytearray)):
+        return bytes(value).decode("utf-8", errors="replace")
+    if hasattr(value, "tolist"):  # NumPy scalars and arrays, without importing NumPy
+        return _json_safe(value.tolist())
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    return str(value)
+
+
 def _print_json(document: Any) -> None:
-    """Write exactly one JSON document to stdout."""
-    sys.stdout.write(json.dumps(document, indent=2, allow_nan=True) + "\n")
+    """Write exactly one strict JSON document to stdout (no NaN, see the module docstring)."""
+    sys.stdout.write(json.dumps(_json_safe(document), indent=2, allow_nan=False) + "\n")
     sys.stdout.flush()
+    _STATE.json_printed = True
 
 
 def _sigma_text(sigma: Any) -> str:
@@ -192,17 +371,35 @@ def main() -> None:
         app(prog_name="endomeasure")
     except SystemExit:
         raise
+    except KeyboardInterrupt:
+        sys.stderr.write("error: interrupted\n")
+        sys.exit(EXIT_INTERRUPTED)
     except BaseException as exc:  # escaped the command boundary, e.g. in an option callback
         if "--debug" in sys.argv:
             raise
-        sys.stderr.write(
-            f"error: internal error ({_one_line(type(exc).__name__ + ': ' + str(exc))}); "
-            "this is a bug in endomeasure; rerun as `endomeasure --debug ...` for the traceback\n"
+        line = _compose(
+            f"internal error ({type(exc).__name__}: {exc})",
+            "this is a bug in endomeasure; rerun as `endomeasure --debug ...` for the traceback",
         )
+        sys.stderr.write(f"error: {line}\n")
         sys.exit(EXIT_BUG)
 
 
 # --------------------------------------------------------------------------- values
+
+
+def _refuse_given(ctx: typer.Context, names: tuple[str, ...], where: str, hint: str) -> None:
+    """A BadInputError naming the options among ``names`` (parameter names) that the
+    command line set although they have no effect ``where``: never silently ignored."""
+    flags = []
+    for param in ctx.command.params:
+        if param.name in names:
+            source = ctx.get_parameter_source(param.name)
+            if source is not None and source.name not in ("DEFAULT", "DEFAULT_MAP"):
+                flags.append(max(param.opts, key=len))
+    if flags:
+        verb = "has" if len(flags) == 1 else "have"
+        raise _bad_input(f"{', '.join(flags)} {verb} no effect {where}", hint=hint)
 
 
 def _bad_input(what: str, hint: str | None = None) -> EndomeasureError:
@@ -259,6 +456,13 @@ def parse_depths(text: str) -> list[float]:
             a, b, c = (float(x) for x in s.split(":"))
             if not (c > 0 and b >= a):
                 raise ValueError
+            n_planes = math.floor((b - a) / c) + 1  # before arange allocates them
+            if not n_planes <= defaults.MAX_MAP_DEPTHS:
+                raise _bad_input(
+                    f"the depths {text!r} make {n_planes:g} planes, more than "
+                    f"{defaults.MAX_MAP_DEPTHS}, more than a map can show",
+                    hint="give a larger STEP",
+                )
             depths = np.arange(a, b + 0.5 * c, c)
         else:
             depths = np.array([float(x) for x in s.split(",")])
@@ -472,8 +676,12 @@ def detect(
     if json_output:
         report = detect_images(session, images, board, image_set=image_set, split=split_column,
                                workers=workers, frame_step=frame_step)  # fmt: skip
-        _print_json(report.to_dict())
-        raise typer.Exit(report.exit_code)
+        failure = _detect_failure(report)
+        error = "" if failure is None else _error_text(failure)
+        _print_json(_with_error(report.to_dict(), error, report.exit_code))
+        if failure is not None:
+            raise failure
+        return
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
@@ -502,7 +710,32 @@ def detect(
         )
 
     _render_detect(console, report)
-    raise typer.Exit(report.exit_code)
+    failure = _detect_failure(report)
+    if failure is not None:
+        raise failure
+
+
+def _with_error(document: dict, error: str, exit_code: int) -> dict:
+    """A failed command's JSON report: its fields plus the error line and the exit code."""
+    if error:
+        document = {**document, "error": error, "exit_code": exit_code}
+    return document
+
+
+def _detect_failure(report: Any) -> EndomeasureError | None:
+    """``detect``'s one line: exit 1 when some image failed, 2 when nothing was usable."""
+    from endomeasure.errors import BadInputError, GoalNotMetError
+
+    if report.exit_code == 2:
+        hint = (
+            "give image files or folders of images"
+            if not report.images
+            else "each image's reason is in the table (with --json: in its report)"
+        )
+        return BadInputError(report.failure, hint=hint)
+    if report.exit_code == 1:
+        return GoalNotMetError(report.failure, hint="the usable images were stored")
+    return None
 
 
 def _print_videos(console: Console, videos: list[Any]) -> None:
@@ -663,19 +896,23 @@ def calibrate(
             seed=seed,
             plot_dir=plot,
         )
+    problems = [f"{name}: {why}" for name, why in report.refused.items()]
+    problems += [
+        f"{name}: calibration failed, stored as not usable: {why}"
+        for name, why in report.failed.items()
+    ]
+    error = "" if report.ok else _one_line(" | ".join(problems) or "no usable model")
     if json_output:
-        _print_json(report.to_dict())
+        _print_json(_with_error(report.to_dict(), error, 1))
     else:
         _render_calibration(console, report)
-    for name, why in report.refused.items():
-        sys.stderr.write(f"error: {name}: {_one_line(why)}\n")
-    for name, why in report.failed.items():
-        level = "error" if not report.ok else "note"
-        sys.stderr.write(
-            f"{level}: {name}: calibration failed, stored as not usable: {_one_line(why)}\n"
-        )
-    if not report.ok:
-        raise typer.Exit(1)
+    if report.ok:  # failed models that another usable one makes up for: notes, exit 0
+        for line in problems:
+            sys.stderr.write(f"note: {_one_line(line)}\n")
+        return
+    from endomeasure.errors import GoalNotMetError
+
+    raise GoalNotMetError(error)
 
 
 def _render_calibration(console: Console, report: Any) -> None:
@@ -740,6 +977,7 @@ def export(
 
 @command("measure")
 def measure(
+    ctx: typer.Context,
     session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],
     model: Annotated[
         str,
@@ -802,11 +1040,15 @@ def measure(
     square areas on every test image, mean error and std per zone, kind and model.
     """
     if board_test:
+        points_only = ("image", "left", "right", "kind", "warn_percent", "sigma", "patch")
+        _refuse_given(ctx, points_only, "with --board-test", "leave them out")
         _measure_board_test(session, model, zone_mm, plot, json_output)
         return
 
     from endomeasure.errors import BadInputError
     from endomeasure.pipeline.measure import MatchRefusedError, measure_points
+
+    _refuse_given(ctx, ("zone_mm",), "without --board-test", "leave it out")
 
     if image is None:
         raise BadInputError("a measurement needs --image NAME", hint="or use --board-test")
@@ -866,7 +1108,8 @@ def _report_refusal(exc: Any, json_output: bool, **request: str) -> None:
             {
                 **request,
                 "measured": False,
-                "error": exc.one_line(),
+                "error": _error_text(exc),
+                "exit_code": exc.exit_code,
                 "matches": [m.to_dict() for m in exc.matches],
                 "plot": exc.plot,
             }
@@ -994,6 +1237,7 @@ def _render_board_test(console: Console, report: Any) -> None:
 
 @command("predict-error")
 def predict_error(
+    ctx: typer.Context,
     session: Annotated[
         Path | None,
         typer.Argument(
@@ -1067,9 +1311,7 @@ def predict_error(
     """
     from endomeasure.errors import BadInputError
 
-    modes = [board_test, measurement is not None, map_mode]
-    if sum(modes) != 1:
-        raise BadInputError("choose one mode: --board-test, --measurement ID or --map")
+    _check_predict_mode(ctx, board_test, measurement, map_mode, model_file, method)
     if session is None and not (map_mode and model_file is not None):
         raise BadInputError("a session is needed (only --map --model-file works without one)")
     console = _stderr_console()
@@ -1130,6 +1372,27 @@ def _budget_text(e: Any) -> str:
     return ", ".join(f"{name} {v:.4f}" for name, v in parts if v == v)
 
 
+def _check_predict_mode(ctx, board_test, measurement, map_mode, model_file, method) -> None:
+    """One mode of ``predict-error``, and no option that has no effect in it."""
+    from endomeasure.errors import BadInputError
+
+    modes = [board_test, measurement is not None, map_mode]
+    if sum(modes) != 1:
+        raise BadInputError("choose one mode: --board-test, --measurement ID or --map")
+    map_only = ("model_file", "template", "size_mm", "depths", "grid", "csv")
+    if board_test:
+        _refuse_given(ctx, map_only, "with --board-test", "those options are for --map")
+    elif measurement is not None:
+        _refuse_given(ctx, ("model", *map_only, "zone_mm", "plot"), "with --measurement",
+                      "a stored measurement keeps its model and points")  # fmt: skip
+    else:
+        _refuse_given(ctx, ("zone_mm",), "with --map", "it belongs to --board-test")
+        if model_file is not None:
+            _refuse_given(ctx, ("model",), "with --model-file", "the file is the model")
+    if method != "mc":
+        _refuse_given(ctx, ("samples",), f"with --method {method}", "it is for --method mc")
+
+
 def _noise_text(noise: Any) -> str:
     return (
         f"sigma {_sigma_text(noise.sigma)} ({noise.source}), rho images {noise.rho_images:g}, "
@@ -1174,7 +1437,7 @@ def _render_map(console: Console, r: Any) -> None:
     console.print(table)
     console.print(
         f"{_noise_text(r.noise)}, calibration covariance "
-        f"{'in' if r.calibration else 'not'} included; {r.method.upper()}"
+        f"{'' if r.calibration else 'not '}included; {r.method.upper()}"
     )
     for label, path in (("plot", r.plot), ("data", r.csv)):
         if path:

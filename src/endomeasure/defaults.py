@@ -1,8 +1,26 @@
 """The defaults of the commands' options, written once: the CLI shows them, the pipeline
-and the core apply them. Standard library only, so that ``endomeasure --help`` stays fast.
+and the core apply them; and the limits on inputs and options that the commands check
+before any work, each with the reason for its value (the refusal's message gives it).
+Standard library only, so that ``endomeasure --help`` stays fast.
 """
 
-__all__ = ["ALL_MODELS", "WARN_PERCENT", "PATCH_PX", "ZONE_MM"]
+__all__ = [
+    "ALL_MODELS",
+    "MAX_IMAGE_PIXELS",
+    "MAX_IMAGE_SIDE",
+    "MAX_MAP_DEPTHS",
+    "MAX_MAP_POINTS",
+    "MAX_MC_SAMPLES",
+    "MAX_PATCH_PX",
+    "MAX_POINTS_PER_MEASUREMENT",
+    "MAX_SIGMA_PX",
+    "MAX_STORED_ELEMENTS",
+    "MAX_WORKERS_PER_CPU",
+    "MIN_ZONE_MM",
+    "PATCH_PX",
+    "WARN_PERCENT",
+    "ZONE_MM",
+]
 
 WARN_PERCENT = 5.0
 """Accuracy-index threshold (percent): the +-5 % that commercial videoscopes quote for
@@ -17,3 +35,51 @@ a few mm, wide enough for several images per zone and a per-zone standard deviat
 
 ALL_MODELS = "all"
 """The ``--model`` value that asks for every registered model."""
+
+# ----- limits checked before any work -------------------------------------------------------
+
+MAX_IMAGE_SIDE = 16384
+"""Largest image width or height accepted (px). Videoscope sensors are at most a few
+thousand pixels wide; 16384 is several times that, and a common per-side limit of image
+codecs. Checked from the file header before any pixel is decoded."""
+
+MAX_IMAGE_PIXELS = 100_000_000
+"""Largest image area accepted (px): 100 MP of 8-bit colour decode to 300 MB, and the
+detector needs a few such buffers; beyond it a refusal is cheaper than running out of
+memory halfway through."""
+
+MAX_WORKERS_PER_CPU = 4
+"""``--workers`` may be at most this many times ``os.cpu_count()``: more processes than
+that only add memory (each holds decoded images) and start-up time, never speed."""
+
+MAX_MC_SAMPLES = 10_000_000
+"""Most Monte Carlo samples (``--samples``): the quantiles are stable to 0.1 % at 1e6;
+1e7 still fits in memory for a handful of points."""
+
+MAX_MAP_POINTS = 1_000_000
+"""Most grid points of an error map (``--grid`` NU x NV times the depth planes): a
+million unscented transforms take minutes; a larger map is not readable in a plot."""
+
+MAX_MAP_DEPTHS = 1000
+"""Most depth planes of an error map (``--depths``): far more than a plot can show."""
+
+MIN_ZONE_MM = 0.01
+"""Narrowest board-test zone (``--zone-mm``, mm): the test images are taken in steps of
+about 1 mm, so zones much narrower than that hold one image each, or none."""
+
+MAX_PATCH_PX = 201
+"""Largest correlation patch side (``--patch``, px, odd): wider than a few percent of a
+half, a patch spans depth changes and the search no longer localises a point."""
+
+MAX_POINTS_PER_MEASUREMENT = 1000
+"""Most points in one measurement (a polyline or an area outline): far more than an
+operator clicks, few enough that the unscented transform's sigma points stay fast."""
+
+MAX_SIGMA_PX = 100.0
+"""Largest image noise (``--sigma``, px): detected corners scatter by well under a pixel;
+at a hundred pixels (a sixth of a half) no propagation of the noise means anything."""
+
+MAX_STORED_ELEMENTS = 50_000_000
+"""Most elements of any array a session stores besides images (checked against the
+dataset's declared shape before it is read): the largest, a calibration's per-corner
+residuals and covariances, hold a few million; 5e7 float64 are 400 MB."""

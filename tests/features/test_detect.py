@@ -211,3 +211,43 @@ def test_rendered_halves_rolled_apart_get_the_same_ids(board, left_roll, right_r
         ks.append(physical_k(half.pixels, scene.true_pixels[half.half], spec.cols, spec.rows))
     assert ks[0] == ks[1]
     assert ks[0] in colour_preserving_turns(spec.cols, spec.rows)
+
+
+# A board one column or row larger than the spec, in poses where the finders may see the
+# spec's size as a part of it (the 7x6 spec on an 8x6 board). Ground truth: the
+# rendered board's size, never the detector's.
+LARGER_POSES = [
+    {"roll_deg": 0.0, "tilt_deg": (0.0, 0.0)},
+    {"roll_deg": 5.0, "tilt_deg": (12.0, -15.0)},
+    {"roll_deg": -30.0, "tilt_deg": (-20.0, 10.0), "distance_mm": 18.0},
+    {"roll_deg": 90.0, "tilt_deg": (5.0, 25.0), "distance_mm": 14.0},
+]
+
+
+@pytest.mark.parametrize("pose", LARGER_POSES, ids=lambda p: f"roll{p['roll_deg']:g}")
+@pytest.mark.parametrize("spec", ["chessboard:8x6:1", "chessboard:9x5:1", "chessboard:8x5:1"])
+@pytest.mark.parametrize("method", ["sb-classic-symmetry", "classic-subpix", "sb"])
+def test_a_part_of_a_larger_board_is_never_stored(pose, spec, method):
+    scene = render("chessboard:9x6:1", **pose)
+    detection = detect_split_image(scene.image, spec, SPLIT, method=method)
+    for half in detection.halves:
+        assert not half.ok and half.ids.shape == (0,), (half.half, half.failure)
+
+
+@pytest.mark.parametrize("pose", LARGER_POSES, ids=lambda p: f"roll{p['roll_deg']:g}")
+def test_the_whole_board_shows_its_edge_beyond_every_side(pose):
+    from endomeasure.features.chessboard import board_edges
+
+    scene = render("chessboard:9x6:1", **pose)
+    for half in Half:
+        q = scene.true_pixels[half]
+        if np.isnan(q).any():
+            continue
+        cols = slice(0, SPLIT) if half == Half.LEFT else slice(SPLIT, None)
+        offset = 0 if half == Half.LEFT else SPLIT
+        grid = (q - [offset, 0]).reshape(6, 9, 2)
+        assert set(board_edges(scene.image[:, cols], grid).values()) == {"edge"}
+        inner = grid[1:-1, 1:-1]  # a part: the board continues on every side
+        assert set(board_edges(scene.image[:, cols], inner).values()) == {"corners"}
+    detection = detect_split_image(scene.image, "chessboard:9x6:1", SPLIT)
+    assert detection.n_ok == 2

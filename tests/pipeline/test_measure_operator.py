@@ -206,6 +206,7 @@ def test_the_plot_of_matches(scene_session, tmp_path):
     truth = _scene_truth()
     left = np.asarray(truth["marks"]["pixels"]["left"])[[0, 2, 5]]
     plot = tmp_path / "sub" / "m.png"
+    plot.parent.mkdir()  # outputs go to existing folders (io.outputs refuses a missing one)
     report = measure_points(
         scene_session, "raytrace", SCENE, left, None, "area", plot=plot, store=False
     )

@@ -283,7 +283,7 @@ def test_map_of_a_session_model_uses_its_calibration(noisy_session, tmp_path):
     plot = tmp_path / "map.png"
     r = _invoke(noisy_session, "--map", "--depths", "14:20:6", "--grid", "6,5", "--plot", plot)
     assert r.exit_code == 0, r.output
-    assert "calibration covariance in included" in " ".join(r.stderr.split())
+    assert "calibration covariance included" in " ".join(r.stderr.split())
     assert plot.stat().st_size > 10_000
 
 

@@ -42,6 +42,13 @@ sector-based finder on the image up-sampled 2x (bicubic), its corners mapped bac
 only finds; the refinement runs on the original image. It rescues boards of squares a
 few pixels wide in the dim field near the apex band (``docs/rotation.md``).
 
+A grid of the spec's size is only kept when it is the whole board: one grid step beyond
+each of its outer lines the board's edge must be seen (the outer squares meeting the
+margin), not a further line of X-junctions (:func:`board_edges`). Otherwise a 7x6 part
+of an 8x6 board, found by the classic finder or after a real line was trimmed, would be
+stored with every id shifted by a column. A half whose board edge is hidden (outside the
+half, in the prism band's shadow) is refused as a partial board for the same reason.
+
 Corner ids at any in-plane rotation (so that the same id in both halves is the same
 physical corner and detections match the simulator's truth). OpenCV may return the grid
 starting at any corner, mirrored or transposed. :func:`orient_grid` makes it
@@ -75,6 +82,7 @@ __all__ = [
     "canonical_grid",
     "colour_preserving_turns",
     "detect_chessboard",
+    "board_edges",
     "orient_grid",
     "refine_corners",
     "refine_symmetric",
@@ -124,6 +132,16 @@ NOT_FOUND = "no chessboard found"
 # Grid lines whose median X-junction score is lower are not corners (a real X scores
 # about 1, a square's edge against the white margin 0.5).
 MIN_SADDLE_SCORE = 0.75
+# The board's edge beyond a grid is judged when at least this fraction of the extrapolated
+# line is inside the image. It is seen as an edge when its median saddle score is at most
+# EDGE_MAX_SCORE and its grey-level spread at least EDGE_MIN_CONTRAST times the spread at
+# the grid's corners (the margin meets squares of the board's contrast; the dark prism
+# band has little). On the demo session's 140 whole boards (560 edges) every edge is
+# inside, with scores 0.47-0.52 and spread ratios 0.50-1.2; faded corners in the band's
+# shadow score 0.56-0.77 with ratios near 0.3, and are told apart from neither.
+EDGE_INSIDE_FRACTION = 0.5
+EDGE_MAX_SCORE = 0.6
+EDGE_MIN_CONTRAST = 0.4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -555,6 +573,12 @@ def saddle_scores(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
         ``p + (+-a +- b) / 4`` (a, b the local grid steps; I1, I3 and I2, I4 diagonal
         pairs): 1 for an X-junction, 0.5 where a square meets the board's margin.
     """
+    return _saddle_and_spread(gray, grid)[0]
+
+
+def _saddle_and_spread(gray: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`saddle_scores` and the spread ``max - min`` of the four quadrant samples
+    (grey levels), each shape (rows, cols)."""
     from scipy.ndimage import map_coordinates
 
     step_col = np.gradient(grid, axis=1)
@@ -569,7 +593,7 @@ def saddle_scores(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
     q = np.stack(samples).reshape(4, *grid.shape[:2])
     spread = q.max(axis=0) - q.min(axis=0)
     score = np.abs(q[0] + q[2] - q[1] - q[3]) / np.maximum(2 * spread, 1e-9)
-    return np.where(spread > 0, score, 0.0)
+    return np.where(spread > 0, score, 0.0), spread
 
 
 def trim_false_lines(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -602,6 +626,87 @@ def trim_false_lines(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
             "right": grid[:, :-1],
         }[worst]
     return grid
+
+
+def _extrapolated_line(grid: np.ndarray, axis: int, start: bool) -> np.ndarray:
+    """The points one grid step beyond the first (``start``) or last line along ``axis``:
+    quadratic from the three outer lines (it follows perspective and distortion), linear
+    with two."""
+    lines = np.moveaxis(grid, axis, 0)
+    if not start:
+        lines = lines[::-1]
+    if lines.shape[0] >= 3:
+        return 3 * lines[0] - 3 * lines[1] + lines[2]
+    return 2 * lines[0] - lines[1]
+
+
+def board_edges(gray: np.ndarray, grid: np.ndarray) -> dict[str, str]:
+    """What lies one grid step beyond each outer line of a grid of inner corners.
+
+    A whole board has its outer edge there: the outer squares meet the margin, a saddle
+    score near 0.5 (:func:`saddle_scores`) with the contrast of the board. A board larger
+    than the grid has another line of X-junctions (a score near 1). Outside the image,
+    or where the contrast is gone (the dark prism band, a vignetted corner), nothing can
+    be told.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (height, width)
+    grid : ndarray, shape (rows, cols, 2), px
+
+    Returns
+    -------
+    dict of str to str
+        For ``'top'``, ``'bottom'``, ``'left'``, ``'right'`` (in the grid's own order):
+        ``'edge'``, ``'corners'`` (the board continues) or ``'unseen'``.
+    """
+    height, width = gray.shape[:2]
+    _, outer_spread = _saddle_and_spread(gray, grid)
+    contrast = float(np.median(outer_spread))
+    found = {}
+    for name, axis, start in (("top", 0, True), ("bottom", 0, False),
+                              ("left", 1, True), ("right", 1, False)):  # fmt: skip
+        beyond = _extrapolated_line(grid, axis, start)
+        outer = np.moveaxis(grid, axis, 0)[0 if start else -1]
+        inside = (
+            (beyond[:, 0] >= 1) & (beyond[:, 0] <= width - 2)
+            & (beyond[:, 1] >= 1) & (beyond[:, 1] <= height - 2)
+        )  # fmt: skip
+        if inside.mean() < EDGE_INSIDE_FRACTION:
+            found[name] = "unseen"
+            continue
+        # the extrapolated line with its neighbour, so that the local steps are defined
+        pair = np.stack([beyond, outer] if start else [outer, beyond])
+        scores, spread = _saddle_and_spread(gray, pair if axis == 0 else np.swapaxes(pair, 0, 1))
+        index = 0 if start else -1
+        line = (scores[index], spread[index]) if axis == 0 else (scores[:, index], spread[:, index])
+        score, line_spread = (float(np.median(v[inside])) for v in line)
+        if score >= MIN_SADDLE_SCORE:
+            found[name] = "corners"
+        elif score <= EDGE_MAX_SCORE and line_spread >= EDGE_MIN_CONTRAST * contrast:
+            found[name] = "edge"
+        else:  # faded corners or a faint edge: neither can be told
+            found[name] = "unseen"
+    return found
+
+
+def _not_the_whole_board(gray: np.ndarray, raw: np.ndarray, spec: ChessboardSpec) -> str | None:
+    """Why a found grid of the spec's size may be a part of a larger board (its ids would
+    be shifted), or None when all four edges of the board are seen beyond it."""
+    edges = board_edges(gray, raw)
+    more = [side for side, what in edges.items() if what == "corners"]
+    if more:
+        return (
+            f"board larger than the spec: the corners continue beyond the {spec.cols}x"
+            f"{spec.rows} grid ({', '.join(more)} side of the grid found)"
+        )
+    unseen = [side for side, what in edges.items() if what == "unseen"]
+    if unseen:
+        return (
+            f"partial board: the board's edge beyond the {', '.join(unseen)} side of the "
+            f"{spec.cols}x{spec.rows} grid is not visible, so a larger board cannot be ruled out"
+        )
+    return None
 
 
 def detect_chessboard(
@@ -648,6 +753,9 @@ def detect_chessboard(
         )
     if raw is None:
         return ChessboardResult(np.empty((0, 2)), failure=NOT_FOUND)
+    partial = _not_the_whole_board(gray, raw, spec)
+    if partial is not None:  # a part of a larger board would be stored with shifted ids
+        return ChessboardResult(np.empty((0, 2)), failure=partial)
     grid, angle, turns = orient_grid(gray, raw, spec.cols, spec.rows)
     found = {"angle_deg": angle, "turns": turns}
     pixels = grid.reshape(-1, 2)

@@ -19,12 +19,14 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from endomeasure.errors import BadInputError
+from endomeasure.io.outputs import file_kind, is_regular_file
 
 __all__ = [
     "EXPORT_FORMATS",
@@ -50,6 +52,10 @@ def model_document(model, extras: dict[str, Any] | None = None) -> dict[str, Any
 def read_model_document(path: str | Path, what: str = "model file") -> dict[str, Any]:
     """The JSON document of a model file (as :func:`export_model` writes it, or wrapped
     under ``camera_model`` as the simulator's truth files hold it)."""
+    if os.path.exists(path) and not is_regular_file(path):  # a FIFO would block the read
+        raise BadInputError(
+            f"the {what} is a {file_kind(os.stat(path).st_mode)}, not a file", path=str(path)
+        )
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, ValueError) as exc:
@@ -103,6 +109,8 @@ def _atomic_write(path: Path, write) -> None:
     tmp = path.with_name(f".tmp{os.getpid()}-{path.name}")
     try:
         write(tmp)
+        if path.exists():  # a replaced file keeps its permissions
+            shutil.copymode(path, tmp)
         os.replace(tmp, path)
     finally:
         if tmp.exists():

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from endomeasure.errors import BadInputError
+from endomeasure.io.image_header import checked_image_size, image_size_from_header
+from endomeasure.io.outputs import file_kind, is_regular_file
 from endomeasure.io.session import IMAGE_SETS, ImageRecord
 from endomeasure.io.video import VIDEO_SUFFIXES
 
@@ -61,12 +63,27 @@ def find_image_files(paths: Iterable[str | os.PathLike]) -> list[Path]:
                 )
             out.append(path)
         else:
-            raise BadInputError("no such file or directory", path=str(path))
+            raise BadInputError(_not_a_file(path), path=str(path))
     return out
 
 
+def _not_a_file(path: Path) -> str:
+    """Why ``path`` is neither an image file nor a folder: missing, or its kind."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "no such file or directory"
+    except OSError as exc:
+        return f"cannot read the path ({exc.strerror or exc})"
+    return f"a {file_kind(mode)}, not an image file or a folder"
+
+
 def read_image_file(
-    path: str | os.PathLike, image_set: str, name: str | None = None
+    path: str | os.PathLike,
+    image_set: str,
+    name: str | None = None,
+    *,
+    expected_size: tuple[int, int] | None = None,
 ) -> ImageRecord:
     """Read an image file into an :class:`ImageRecord` ready to embed.
 
@@ -79,11 +96,15 @@ def read_image_file(
         One of ``calib``, ``test``, ``scene``.
     name : str, optional
         Key in the session; default: the file's stem.
+    expected_size : (width, height), optional, px
+        The session's image size: another size is refused before decoding.
 
     Raises
     ------
     BadInputError
-        Unreadable or undecodable file, or pixel type other than 8/16-bit unsigned.
+        Unreadable or undecodable file, a size beyond the limits or other than
+        ``expected_size`` (read from the header, before decoding), or a pixel type
+        other than 8/16-bit unsigned.
     """
     import cv2  # heavy; only needed when images are actually read
 
@@ -92,13 +113,20 @@ def read_image_file(
         raise BadInputError(
             f"unknown image set {image_set!r}", hint=f"use one of {', '.join(IMAGE_SETS)}"
         )
+    if os.path.exists(path) and not is_regular_file(path):  # a FIFO would block the read
+        raise BadInputError(_not_a_file(path), path=str(path))
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise BadInputError(f"cannot read the image file ({exc.strerror})", path=str(path)) from exc
+    header_size = image_size_from_header(data[: 1 << 16])
+    if header_size is not None:
+        checked_image_size(header_size, str(path), expected_size)
     pixels = None
     if data:
         pixels = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if pixels is not None and header_size is None:  # a format the header reader does not know
+        checked_image_size((pixels.shape[1], pixels.shape[0]), str(path), expected_size)
     if pixels is None:
         raise BadInputError(
             "cannot decode the image file",

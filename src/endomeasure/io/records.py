@@ -136,10 +136,11 @@ def calibration_record(result, name: str | None = None) -> ModelRecord:
 
 def model_from_record(record: ModelRecord):
     """The camera model of a stored model entry (registry name, parameters, config)."""
+    from endomeasure.io.image_header import checked_image_size
     from endomeasure.models import model_from_dict
 
     try:
-        return model_from_dict(
+        model = model_from_dict(
             {
                 "model": record.registry_name,
                 "param_names": list(record.param_names),
@@ -147,8 +148,18 @@ def model_from_record(record: ModelRecord):
                 "config": record.config,
             }
         )
-    except (KeyError, ValueError) as exc:
+    except (KeyError, ValueError, TypeError) as exc:
         raise BadInputError(f"stored model {record.name!r} cannot be read: {exc}") from None
+    size = model.config.image_size
+    try:  # a crafted size would make every image-sized grid of the model unbounded
+        checked_image_size(size, f"model {record.name!r}")
+    except BadInputError:
+        raise BadInputError(
+            f"stored model {record.name!r} declares an image of {size[0]}x{size[1]} px, "
+            "beyond the limits",
+            hint="the session is damaged or crafted; recalibrate",
+        ) from None
+    return model
 
 
 def _stored_covariance(record: ModelRecord) -> tuple[list[str], np.ndarray] | None:
@@ -240,11 +251,19 @@ def load_calibrated_model(
     """
     names = reader.model_names()
     if name not in names:
+        from endomeasure.models import MODELS
+
         held = ", ".join(names) if names else "none"
+        if name in MODELS:
+            hint = f"run `endomeasure calibrate {session} --model {name}` first"
+        elif names:
+            hint = f"give --model one of the stored models: {held}"
+        else:  # an unknown name: suggest what can be calibrated, not the name itself
+            hint = f"calibrate one of the models {', '.join(MODELS)} first"
         raise BadInputError(
             f"the session has no calibrated {name!r} model (it holds: {held})",
             path=str(session),
-            hint=f"run `endomeasure calibrate {session} --model {name}` first",
+            hint=hint,
         )
     record = reader.model(name)
     if not allow_failed:
@@ -264,6 +283,13 @@ def load_calibrated_model(
         order = [stored_names.index(n) for n in free]
         cov = c[np.ix_(order, order)]
     variance = record.attrs.get("residual_variance")
+    if variance is not None and not isinstance(variance, (int, float)):
+        raise BadInputError(
+            f"the stored residual variance of model {name!r} is not a number "
+            f"({type(variance).__name__})",
+            path=str(session),
+            hint=f"the session is damaged or crafted; re-run `endomeasure calibrate {session}`",
+        )
     sigma = (
         float(np.sqrt(variance))
         if variance is not None and np.isfinite(variance) and variance > 0

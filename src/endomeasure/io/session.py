@@ -66,6 +66,7 @@ import math
 import os
 import re
 import shutil
+import stat
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -77,6 +78,7 @@ import numpy as np
 
 from endomeasure import __version__
 from endomeasure.conventions import Half
+from endomeasure.defaults import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE, MAX_STORED_ELEMENTS
 from endomeasure.errors import (
     BadInputError,
     EndomeasureError,
@@ -84,6 +86,13 @@ from endomeasure.errors import (
     SessionVersionError,
 )
 from endomeasure.io._lock import DEFAULT_LOCK_TIMEOUT_S, SessionLock
+from endomeasure.io.image_header import checked_image_size
+from endomeasure.io.outputs import (
+    SESSION_TMP_SUFFIX,
+    checked_session_target,
+    file_kind,
+    is_regular_file,
+)
 
 __all__ = [
     "FORMAT_NAME",
@@ -111,7 +120,7 @@ _NODE_VERSION = "1.0"
 IMAGE_SETS = ("calib", "test", "scene")
 """Image sets: calibration images, test images of a known board, scenes to measure."""
 
-_TMP_SUFFIX = ".endomeasure-tmp"
+_TMP_SUFFIX = SESSION_TMP_SUFFIX
 _NAME_RE = re.compile(r"^[^/\x00]+$")
 _RESERVED_ATTRS = frozenset({"type", "version", "json_attrs"})
 _UNITS_PREFIX = "units:"
@@ -341,7 +350,7 @@ def _check_name(name: str, what: str) -> str:
 
 def _attr_to_python(value: Any) -> Any:
     if isinstance(value, bytes):
-        return value.decode("utf-8")
+        return value.decode("utf-8", errors="replace")
     if isinstance(value, np.ndarray):
         if value.dtype.kind in "OSU":
             return [v.decode("utf-8") if isinstance(v, bytes) else str(v) for v in value.ravel()]
@@ -435,11 +444,24 @@ def _write_array(group: Any, name: str, value: Any, unit: str | None = None) -> 
         dset.attrs["units"] = str(unit)
 
 
+def _read(dset: Any) -> Any:
+    """All of a dataset, after checking its declared size: a crafted shape is refused
+    (as damage) before h5py allocates it."""
+    if dset.size > MAX_STORED_ELEMENTS:
+        raise ValueError(
+            f"the dataset {dset.name} declares {dset.size:.3g} elements, more than the "
+            f"{MAX_STORED_ELEMENTS:.3g} any session holds"
+        )
+    return dset[()]
+
+
 def _read_array(dset: Any) -> np.ndarray:
+    if dset.size > MAX_STORED_ELEMENTS:
+        _read(dset)  # raises
     if h5py.check_string_dtype(dset.dtype) is not None:
         data = dset.asstr()[()]
         return np.array(data, dtype=str) if isinstance(data, np.ndarray) else np.array(data)
-    return np.asarray(dset[()])
+    return np.asarray(_read(dset))
 
 
 def _read_arrays(
@@ -504,6 +526,13 @@ def _open_h5(path: Path, mode: str) -> h5py.File:
         )
     if path.is_dir():
         raise SessionError("a session must be a file, not a directory", path=spath)
+    st_mode = os.stat(path).st_mode
+    if not stat.S_ISREG(st_mode):  # never open a FIFO or a device: it could block or never end
+        raise SessionError(
+            f"the session path is a {file_kind(st_mode)}, not a session file",
+            path=spath,
+            hint="give an endomeasure session file (.h5)",
+        )
     try:
         is_hdf5 = h5py.is_hdf5(spath)
     except OSError as exc:
@@ -619,13 +648,39 @@ class Session:
             attrs, _ = _read_attrs(node)
         size = attrs.pop("image_size", None)
         split = attrs.pop("split", None)
+        size = None if size is None else (int(size[0]), int(size[1]))
+        split = None if split is None else int(split)
+        if size is not None:
+            self._check_declared(size, "its image size")
+            if split is not None and not 0 < split < size[0]:
+                raise SessionError(
+                    f"the session declares the split column {split} outside its "
+                    f"{size[0]} px wide images",
+                    path=str(self.path),
+                    hint="the metadata is damaged or crafted; restore the session from a backup",
+                )
+        created_by = _attr_to_python(root.attrs.get("created_by", ""))
+        if isinstance(created_by, bytes):
+            created_by = created_by.decode("utf-8", errors="replace")
         return SessionMetadata(
             format_version=_attr_to_python(root.attrs["format_version"]),
-            created_by=_attr_to_python(root.attrs.get("created_by", "")),
-            image_size=None if size is None else (int(size[0]), int(size[1])),
-            split=None if split is None else int(split),
+            created_by=str(created_by),
+            image_size=size,
+            split=split,
             attrs=attrs,
         )
+
+    def _check_declared(self, size: tuple[int, int], what: str) -> None:
+        """A SessionError for a declared image size beyond the limits (before any read)."""
+        try:
+            checked_image_size(size, str(self.path))
+        except BadInputError as exc:
+            raise SessionError(
+                f"the session declares {what} {size[0]}x{size[1]} px, beyond the limit of "
+                f"{MAX_IMAGE_SIDE} px a side and {MAX_IMAGE_PIXELS / 1e6:g} MP",
+                path=str(self.path),
+                hint="the session is damaged or crafted; restore it from a backup",
+            ) from exc
 
     # images
     def _image_nodes(self) -> dict[str, Any]:
@@ -672,7 +727,35 @@ class Session:
         nodes = self._image_nodes()
         if name not in nodes:
             raise _not_found("image", name, nodes, str(self.path))
-        return np.asarray(nodes[name][()])
+        dset = nodes[name]
+        self._check_image_shape(name, dset.shape, dset.dtype)  # before reading a pixel
+        return np.asarray(dset[()])
+
+    def _check_image_shape(self, name: str, shape: tuple[int, ...], dtype: Any) -> None:
+        """Refuse an image dataset whose declared shape or type no image of the session
+        can have: beyond the limits, other than the session's image size, or not 8/16-bit
+        grey or colour pixels."""
+        bad = None
+        if len(shape) not in (2, 3) or (len(shape) == 3 and shape[2] not in (1, 3, 4)):
+            bad = f"shape {tuple(shape)}"
+        elif np.dtype(dtype) not in (np.uint8, np.uint16):
+            bad = f"pixel type {np.dtype(dtype)}"
+        if bad is not None:
+            raise SessionError(
+                f"the stored image {name!r} has the {bad}, which no image has",
+                path=str(self.path),
+                hint="the session is damaged or crafted; restore it from a backup",
+            )
+        size = (int(shape[1]), int(shape[0]))
+        self._check_declared(size, f"the image {name!r} of")
+        declared = self.metadata().image_size
+        if declared is not None and size != declared:
+            raise SessionError(
+                f"the stored image {name!r} is {size[0]}x{size[1]} px but the session "
+                f"declares {declared[0]}x{declared[1]} px",
+                path=str(self.path),
+                hint="the session is damaged or crafted; restore it from a backup",
+            )
 
     @_translating_errors
     def image_record(self, name: str) -> ImageRecord:
@@ -739,10 +822,10 @@ class Session:
                     if not self._check_node(node, "detection"):
                         continue
                     attrs, _ = _read_attrs(node)
-                    pixels = np.asarray(node["pixels"][()], dtype=np.float64).reshape(-1, 2)
+                    pixels = np.asarray(_read(node["pixels"]), dtype=np.float64).reshape(-1, 2)
                     covariance = None
                     if "covariance" in node:
-                        covariance = np.asarray(node["covariance"][()], dtype=np.float64)
+                        covariance = np.asarray(_read(node["covariance"]), dtype=np.float64)
                         if covariance.shape != (len(pixels), 2, 2):
                             raise _damaged(
                                 str(self.path),
@@ -756,7 +839,7 @@ class Session:
                             image=image_name,
                             board=board_name,
                             half=half_value,
-                            ids=np.asarray(node["ids"][()], dtype=np.int32),
+                            ids=np.asarray(_read(node["ids"]), dtype=np.int32),
                             pixels=pixels,
                             quality=float(attrs.pop("quality", math.nan)),
                             failure=str(attrs.pop("failure", "")),
@@ -784,7 +867,7 @@ class Session:
         return ModelRecord(
             name=name,
             registry_name=registry_name,
-            params=np.asarray(node["params"][()], dtype=np.float64),
+            params=np.asarray(_read(node["params"]), dtype=np.float64),
             param_names=tuple(str(s) for s in _read_array(node["param_names"])),
             config=config,
             arrays=arrays,
@@ -1085,11 +1168,21 @@ def open_session(
         An unknown major format version.
     """
     path = Path(path)
+    if path.is_symlink():  # lock the target, as writers do
+        path = Path(os.path.realpath(path))
+    if not is_regular_file(path):
+        _open_h5(path, "r")  # raises the reason; no lock file is left beside a wrong path
     # The shared lock only covers the open: once open, the file is an immutable snapshot
     # because writers replace it rather than change it.
     with SessionLock(path, exclusive=False, timeout=lock_timeout, required=False):
         h5 = _open_h5(path, "r")
-    return Session(path, h5)
+    session = Session(path, h5)
+    try:
+        session.metadata()  # a crafted image size or split is refused before any read
+    except BaseException:
+        session.close()
+        raise
+    return session
 
 
 def _fsync_path(path: Path, directory: bool = False) -> None:
@@ -1143,13 +1236,9 @@ def edit_session(
     SessionError, SessionVersionError
         As :func:`open_session`; also when the lock is not granted in time.
     """
-    path = Path(path)
-    if not path.parent.is_dir():
-        raise SessionError(
-            "the session's directory does not exist",
-            path=str(path),
-            hint="create the directory first",
-        )
+    # a symlink is written through (its target replaced, the link kept); a hard-linked
+    # session, a FIFO, a device or an unwritable folder are refused before any work
+    path = checked_session_target(path, create=create, probe=False)
     with SessionLock(path, exclusive=True, timeout=lock_timeout):
         _remove_stale_temps(path)
         exists = path.exists()
@@ -1159,11 +1248,19 @@ def edit_session(
                 path=str(path),
                 hint="check the path, or start a session with a command that creates one",
             )
-        if exists:
-            _open_h5(path, "r").close()  # validate before copying: clear errors, no work
-        fd, tmp_name = tempfile.mkstemp(
-            dir=path.parent, prefix=f".{path.name}.", suffix=_TMP_SUFFIX
-        )
+        if exists:  # validate before copying: clear errors, no work
+            with Session(path, _open_h5(path, "r")) as current:
+                current.metadata()
+        try:
+            fd, tmp_name = tempfile.mkstemp(
+                dir=path.parent, prefix=f".{path.name}.", suffix=_TMP_SUFFIX
+            )
+        except OSError as exc:
+            raise SessionError(
+                f"cannot write beside the session ({exc.strerror or exc})",
+                path=str(path),
+                hint="the session's folder must be writable",
+            ) from None
         tmp = Path(tmp_name)
         h5 = None
         try:

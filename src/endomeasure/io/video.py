@@ -22,6 +22,8 @@ from typing import Any
 import numpy as np
 
 from endomeasure.errors import BadInputError
+from endomeasure.io.image_header import checked_image_size
+from endomeasure.io.outputs import file_kind
 
 __all__ = [
     "VIDEO_SUFFIXES",
@@ -63,7 +65,10 @@ def _open(path: Path):
     import cv2
 
     if not path.is_file():
-        raise BadInputError("no such video file", path=str(path))
+        what = "no such video file"
+        if os.path.exists(path):
+            what = f"a {file_kind(os.stat(path).st_mode)}, not a video file"
+        raise BadInputError(what, path=str(path))
     # Decoder complaints would only add lines to the one-line error the caller raises.
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
@@ -199,6 +204,7 @@ class VideoSummary:
 
 
 def _size_check(size: tuple[int, int], image_size, path: str) -> None:
+    checked_image_size(size, path)  # the limits, from the container before any decoding
     if image_size is not None and size != tuple(image_size):
         raise BadInputError(
             f"the video's frames are {size[0]}x{size[1]} px but the session's images are "

@@ -365,6 +365,12 @@ def checked_zone_mm(zone_mm: float) -> float:
     zone_mm = float(zone_mm)
     if not (np.isfinite(zone_mm) and zone_mm > 0):
         raise BadInputError(f"the zone width must be a positive number of mm, not {zone_mm}")
+    if zone_mm < defaults.MIN_ZONE_MM:
+        raise BadInputError(
+            f"the zone width {zone_mm:g} mm is below {defaults.MIN_ZONE_MM:g} mm: the test "
+            "images are about 1 mm apart, so such zones hold one image or none",
+            hint="give --zone-mm of 1 mm or more",
+        )
     return zone_mm
 
 

@@ -370,6 +370,12 @@ class MatchSettings:
             raise BadInputError(
                 f"patch size {patch!r} is not valid", hint="use an odd size >= 5 px"
             )
+        if patch > defaults.MAX_PATCH_PX:
+            raise BadInputError(
+                f"patch size {patch} px is larger than {defaults.MAX_PATCH_PX} px: so wide a patch "
+                "spans changes of depth and no longer localises a point",
+                hint=f"use an odd size from 5 to {defaults.MAX_PATCH_PX} px",
+            )
         if self.warp not in WARPS:
             raise BadInputError(
                 f"unknown patch warp {self.warp!r}", hint=f"use one of {', '.join(WARPS)}"

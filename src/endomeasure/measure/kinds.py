@@ -38,6 +38,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from endomeasure.defaults import MAX_POINTS_PER_MEASUREMENT
 from endomeasure.errors import BadInputError
 
 __all__ = [
@@ -236,6 +237,12 @@ def check_count(kind: str, n: int, what: str = "points") -> None:
     """BadInputError unless ``n`` points can be measured as ``kind`` (``what`` names how
     the user gives them, for the hint)."""
     spec = kind_spec(kind)
+    if n > MAX_POINTS_PER_MEASUREMENT:
+        raise BadInputError(
+            f"{n} points is more than {MAX_POINTS_PER_MEASUREMENT} in one measurement, far "
+            "more than an outline needs",
+            hint="measure it in parts, or with fewer points",
+        )
     if n < spec.min_points or (spec.max_points is not None and n > spec.max_points):
         raise BadInputError(
             f"{kind} needs {_count_hint(spec)} points, got {n}",

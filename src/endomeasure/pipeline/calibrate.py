@@ -148,12 +148,22 @@ def load_calibration_inputs(session: str | Path):
                 hint="run `endomeasure detect` first",
             )
         calib_images = set(s.image_names("calib"))
+        other_images = set(s.image_names()) - calib_images
         boards = {name: parse_board_spec(b.spec).object_points for name, b in s.boards().items()}
         detections = s.detections()
+    # Detections of test and scene images never enter a calibration (the board test would
+    # then judge the model on its own data); those of images not embedded (a session of
+    # detections only) have no set and are taken.
+    usable = [det for det in detections if det.image not in other_images]
+    if detections and not usable:
+        raise BadInputError(
+            "the session has no calibration images: its detections are all of test or scene images",
+            path=str(session),
+            hint="add calibration images with `endomeasure detect SESSION IMAGES --board "
+            "SPEC --set calib`",
+        )
     by_view: dict[tuple[str, str], dict[Half, Any]] = {}
-    for det in detections:
-        if calib_images and det.image not in calib_images:
-            continue
+    for det in usable:
         by_view.setdefault((det.image, det.board), {})[Half.parse(det.half)] = det
     boards_per_image: dict[str, int] = {}
     for image, _ in by_view:
@@ -269,11 +279,15 @@ def calibrate_session(
     CalibrateReport
         ``refused`` names the models whose calibration was refused (not stored).
     """
+    from endomeasure.io.outputs import checked_output_dir, checked_session_target
     from endomeasure.io.records import calibration_record
     from endomeasure.io.session import edit_session
     from endomeasure.measure.plots import plot_residuals
     from endomeasure.solvers.calibrate import calibrate
 
+    checked_session_target(session, create=False)  # the models are stored in it at the end
+    if plot_dir is not None:
+        plot_dir = checked_output_dir(plot_dir, "plot folder")
     names = calibration_order(model)
     options = _options_per_model(names, dict(values or {}), frozenset(free), frozenset(hold),
                                  _read_seed(seed))  # fmt: skip
@@ -332,9 +346,11 @@ def _options_per_model(names, values: dict, free: frozenset, hold: frozenset, se
 def export_session_model(session: str | Path, name: str, fmt: str, out: str | Path) -> Path:
     """``endomeasure export``: write a stored model (and its calibration figures) to a file."""
     from endomeasure.io.export import export_model
+    from endomeasure.io.outputs import checked_output
     from endomeasure.io.records import calibration_extras, check_usable, model_from_record
     from endomeasure.io.session import open_session
 
+    out = checked_output(out, "exported model", inputs=[session])
     with open_session(session) as s:
         record = s.model(name)
     check_usable(record, session)

@@ -31,6 +31,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from endomeasure import defaults
 from endomeasure.conventions import Half
 from endomeasure.errors import BadInputError, EndomeasureError
 from endomeasure.io.video import is_video_file
@@ -127,6 +128,30 @@ class DetectReport:
             return 2
         return 1 if counts[STATUS_FAILED] else 0
 
+    @property
+    def failure(self) -> str:
+        """Why the command did not fully succeed, in one sentence ('' when it did): how
+        many images could not be used and their most frequent reasons."""
+        code = self.exit_code
+        if code == 0:
+            return ""
+        reasons: dict[str, int] = {}
+        for image in self.images:
+            if image.status != STATUS_FAILED:
+                continue
+            why = image.error or "; ".join(
+                sorted({h.failure for h in image.halves.values() if h.failure})
+            )
+            reasons[why or "failed"] = reasons.get(why or "failed", 0) + 1
+        common = sorted(reasons.items(), key=lambda item: -item[1])[:3]
+        listed = ", ".join(f"{why} ({n})" for why, n in common)
+        n_failed, n_all = self.counts[STATUS_FAILED], len(self.images)
+        if code == 2:
+            if n_all == 0:
+                return "no image to detect in: the paths hold no image or video file"
+            return f"nothing usable: none of the {n_all} image(s) showed the board: {listed}"
+        return f"{n_failed} of {n_all} image(s) could not be used: {listed}"
+
     def to_dict(self) -> dict[str, Any]:
         found, examined = self.halves_found
         return {
@@ -175,9 +200,11 @@ def _read_task(
     board: str | None = None,
     split: int | None = None,
     method: str | None = None,
+    expected_size: tuple[int, int] | None = None,
 ):
     """Read and decode one file (``item`` a path), or take a video's frame (``item`` its
-    ImageRecord); gather its split evidence, or detect when the split is known.
+    ImageRecord); gather its split evidence, or detect when the split is known. A file
+    whose header gives another size than ``expected_size`` is not decoded.
 
     Never raises for a bad file: returns ``(path, record, split_evidence, error,
     detection)`` with ``error`` set instead.
@@ -189,7 +216,7 @@ def _read_task(
     if isinstance(item, str):
         path = item
         try:
-            record = read_image_file(path, image_set)
+            record = read_image_file(path, image_set, expected_size=expected_size)
         except EndomeasureError as exc:
             return path, None, None, exc.what, None
     else:
@@ -388,7 +415,10 @@ def _read_and_detect(items, image_set, board_name, given_split, before: _Snapsho
         # With the split known, each worker reads and detects in one go.
         reads = runner.run(
             _read_task,
-            [(item, image_set, want_split, board_name, known_split, method) for item in items],
+            [
+                (item, image_set, want_split, board_name, known_split, method, before.image_size)
+                for item in items
+            ],  # fmt: skip
             tick("reading" if want_split else "detecting", len(items)),
         )
         records, detections = _check_reads(reads, before.image_size, before.images, results)
@@ -591,9 +621,19 @@ def detect_images(
         )
     if int(workers) < 1:
         raise BadInputError(f"--workers must be at least 1, not {workers}")
+    most = defaults.MAX_WORKERS_PER_CPU * (os.cpu_count() or 1)
+    if int(workers) > most:
+        raise BadInputError(
+            f"--workers {workers} is more than {defaults.MAX_WORKERS_PER_CPU} per CPU "
+            f"({most} on this machine): more processes only add memory and start-up time",
+            hint=f"give at most --workers {most}",
+        )
     if frame_step is not None and int(frame_step) < 1:
         raise BadInputError(f"--frame-step must be at least 1, not {frame_step}")
+    from endomeasure.io.outputs import checked_session_target
+
     session_path = Path(session_path)
+    checked_session_target(session_path, create=True)  # before reading any image
     before = _snapshot(session_path)
     if split is not None and before.split is not None and split != before.split:
         if before.has_detections:

@@ -10,7 +10,8 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from endomeasure.errors import BadInputError
-from endomeasure.io.images import find_image_files, read_image_file
+from endomeasure.io.images import IMAGE_SUFFIXES, find_image_files, read_image_file
+from endomeasure.io.outputs import checked_session_target
 from endomeasure.io.session import ImageRecord, edit_session, open_session
 from endomeasure.io.video import VideoSummary, is_video_file
 
@@ -62,7 +63,7 @@ def add_images(
     Parameters
     ----------
     session_path : path-like
-        Created when missing (with no images if ``paths`` is empty).
+        Created when missing.
     paths : iterable of path-like
         Image files, directories of images (not searched recursively) and video files
         (:data:`endomeasure.io.video.VIDEO_SUFFIXES`).
@@ -81,23 +82,39 @@ def add_images(
     Raises
     ------
     BadInputError
-        Unreadable files, two files with one name, or images of different sizes (all
-        images of a session come from one sensor, so they share one size); for videos:
-        an unreadable or truncated file, no board to pick with, no frame worth keeping.
+        No image given (or folders without image files), unreadable files, images
+        beyond the size limits (read from their headers), two files with one name, or
+        images of different sizes (all images of a session come from one sensor, so
+        they share one size); for videos: an unreadable or truncated file, no board to
+        pick with, no frame worth keeping.
     """
     if frame_step is not None and int(frame_step) < 1:
         raise BadInputError(f"--frame-step must be at least 1, not {frame_step}")
+    checked_session_target(session_path, create=True)  # before reading any image
     paths = list(paths)
+    if not paths:
+        raise BadInputError(
+            "no image given", hint="give image files, folders of images or video files"
+        )
     videos = [p for p in paths if is_video_file(p) and not os.path.isdir(p)]
     files = find_image_files([p for p in paths if not (is_video_file(p) and not os.path.isdir(p))])
+    if not files and not videos:
+        raise BadInputError(
+            "no image file in " + ", ".join(os.fspath(p) for p in paths),
+            hint=f"a folder contributes its {', '.join(IMAGE_SUFFIXES)} files (not subfolders)",
+        )
+    stored_size, stored_split, stored_board = _session_facts(session_path)
     records = []
+    size = stored_size
     for done, path in enumerate(files, start=1):
-        records.append(read_image_file(path, image_set))
+        # the size from each file's header, before decoding: the session's, else the first's
+        record = read_image_file(path, image_set, expected_size=size)
+        records.append(record)
+        size = size or (int(record.pixels.shape[1]), int(record.pixels.shape[0]))
         if on_progress is not None:
             on_progress(done, len(files))
     summaries = []
     if videos:
-        stored_size, stored_split, stored_board = _session_facts(session_path)
         size = stored_size or (
             (int(records[0].pixels.shape[1]), int(records[0].pixels.shape[0])) if records else None
         )

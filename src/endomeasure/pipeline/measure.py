@@ -270,6 +270,18 @@ def _checked_request(kind, left, right, warn_percent, plot) -> _Request:
     return _Request(spec, query_half, search, given)
 
 
+def _checked_plot(plot, session, store: bool):
+    """The plot file to write (or None) and, when results are stored, the session's
+    target: both refused before any work (:mod:`endomeasure.io.outputs`)."""
+    from endomeasure.io.outputs import PLOT_SUFFIXES, checked_output, checked_session_target
+
+    if store:
+        checked_session_target(session, create=False)
+    if plot is None:
+        return None
+    return checked_output(plot, "plot", inputs=[session], suffixes=PLOT_SUFFIXES)
+
+
 def _check_count(request: _Request, kind: str) -> int:
     from endomeasure.measure.kinds import check_count
 
@@ -397,6 +409,11 @@ def measure_points(
 
     request = _checked_request(kind, left, right, warn_percent, plot)
     n = _check_count(request, kind)  # before any image is read
+    if request.search:
+        from endomeasure.measure.correspondence import MatchSettings
+
+        MatchSettings(patch=patch)  # the patch size checked before any work
+    plot = _checked_plot(plot, session, store)
     with open_session(session) as reader:
         reader.image_info(image)  # an unknown image is a BadInputError listing the images
         cm = records.load_calibrated_model(reader, model_name, session)
@@ -545,6 +562,7 @@ def board_test(
     from endomeasure.measure.board_test import checked_zone_mm
 
     zone_mm = checked_zone_mm(zone_mm)
+    plot = _checked_plot(plot, session, store)
     with open_session(session) as reader:
         names = _models_to_run(reader, model, session)
         # the board test is the diagnostic that shows a failed calibration's errors

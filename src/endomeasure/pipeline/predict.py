@@ -17,6 +17,7 @@ SPEC section 8, the paper's Section 4.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -95,6 +96,16 @@ class NoiseAssumptions:
         if self.method not in METHODS:
             raise BadInputError(
                 f"unknown method {self.method!r}", hint=f"use one of {', '.join(METHODS)}"
+            )
+        for name in ("rho_images", "rho_points"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value)):
+                raise BadInputError(f"--{name.replace('_', '-')} must be a number, not {value}")
+        if self.n_samples is not None and not 100 <= int(self.n_samples) <= defaults.MAX_MC_SAMPLES:
+            raise BadInputError(
+                f"--samples {self.n_samples} is outside 100-{defaults.MAX_MC_SAMPLES:.0e}: fewer "
+                "give no quantiles, more than that take minutes and gigabytes for no precision",
+                hint="the default 20000 suits most uses",
             )
 
     def image_noise(self, cm, what: str):
@@ -231,12 +242,17 @@ def predict_board_test(
     the prediction, if there is none). Stores a ``prediction`` record named
     ``board-test-<model>``.
     """
+    from endomeasure.io.outputs import PLOT_SUFFIXES, checked_output, checked_session_target
     from endomeasure.io.records import board_prediction_record, load_calibrated_model
     from endomeasure.io.session import edit_session, open_session
     from endomeasure.measure.board_runs import prediction_zones, within_band
     from endomeasure.measure.board_test import checked_zone_mm
 
     zone = checked_zone_mm(defaults.ZONE_MM if zone_mm is None else zone_mm)
+    if store:
+        checked_session_target(session, create=False)
+    if plot is not None:
+        plot = checked_output(plot, "plot", inputs=[session], suffixes=PLOT_SUFFIXES)
     with open_session(session) as reader:
         cm = load_calibrated_model(reader, model, session)
         if noise.sigma is not None:
@@ -317,6 +333,10 @@ def predict_stored_measurement(
     from endomeasure.measure.kinds import kind_spec
     from endomeasure.measure.predict import PredictedError, predict_measurement_error
 
+    if store:
+        from endomeasure.io.outputs import checked_session_target
+
+        checked_session_target(session, create=False)
     with open_session(session) as reader:
         stored = stored_measurement(reader.record(MEASUREMENT_RECORD, measurement))
         name = model or stored.model
@@ -457,6 +477,7 @@ def predict_map(
     ``DEFAULT_DEPTHS_MM``); ``grid``: (NU, NV) pixels over the left half.
     """
     from endomeasure.io.export import write_map_csv
+    from endomeasure.io.outputs import PLOT_SUFFIXES, checked_outputs
     from endomeasure.measure.predict import TEMPLATES, error_map, volume_grid
 
     if template not in TEMPLATES:
@@ -466,6 +487,24 @@ def predict_map(
     n_u, n_v = grid
     if n_u < 2 or n_v < 2:
         raise BadInputError(f"the map grid needs at least 2x2 points, got {n_u}x{n_v}")
+    if not (math.isfinite(size_mm) and size_mm > 0):
+        raise BadInputError(f"the template size must be a positive number of mm, not {size_mm}")
+    n_planes = MAP_PLANES if depths is None else len(depths)
+    if n_planes > defaults.MAX_MAP_DEPTHS:
+        raise BadInputError(
+            f"{n_planes} depth planes is more than {defaults.MAX_MAP_DEPTHS}, more than a map "
+            "can show",
+            hint="give fewer --depths",
+        )
+    if n_u * n_v * n_planes > defaults.MAX_MAP_POINTS:
+        raise BadInputError(
+            f"a map of {n_u}x{n_v} points on {n_planes} planes has {n_u * n_v * n_planes} "
+            f"points, more than {defaults.MAX_MAP_POINTS}: it would run for hours",
+            hint="give a coarser --grid or fewer --depths",
+        )
+    plot, csv = checked_outputs(
+        [(plot, "plot", PLOT_SUFFIXES), (csv, "CSV file", None)], inputs=[session, model_file]
+    )
     cam, cm, source, name = _map_model(session, model, model_file)
     if depths is None:
         seen = None if cm is None else cm.depth_range_mm

@@ -257,9 +257,9 @@ def simulate(
         raise BadInputError(f"seed must be a non-negative integer, not {seed}")
     set_names = checked_sets(sets)
     loaded = _load(preset, design_seed)
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise BadInputError("the output path exists and is not a folder", path=str(out))
+    from endomeasure.io.outputs import checked_output_dir
+
+    out = checked_output_dir(out_dir, "output folder", create_parents=True)
     try:
         plans = {name: plan_set(loaded, name, int(seed)) for name in set_names}
     except ValueError as exc:

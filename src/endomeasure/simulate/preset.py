@@ -116,7 +116,9 @@ def load_preset(name_or_path: str | Path) -> Preset:
         if not candidate.is_file():
             names = ", ".join(builtin_presets())
             raise BadInputError(
-                "simulator preset file not found",
+                "simulator preset file not found"
+                if not candidate.exists()
+                else "the simulator preset is not a regular file",
                 path=str(candidate),
                 hint=f"give a JSON file or one of the built-in presets: {names}",
             )

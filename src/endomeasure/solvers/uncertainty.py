@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from endomeasure.conventions import Status
+from endomeasure.defaults import MAX_SIGMA_PX
 from endomeasure.errors import BadInputError
 from endomeasure.models.base import ParamBatch
 from endomeasure.solvers.triangulate import triangulate
@@ -148,6 +149,12 @@ def pixel_sigmas(sigma) -> np.ndarray:
     if s.shape != (2,) or not (np.all(np.isfinite(s)) and np.all(s >= 0)):
         raise BadInputError(
             f"sigma must be a non-negative number of pixels or a pair (u, v), got {sigma}"
+        )
+    if np.any(s > MAX_SIGMA_PX):
+        raise BadInputError(
+            f"sigma {sigma} px is beyond {MAX_SIGMA_PX:g} px: detected points scatter by "
+            "well under a pixel, and no error propagation means anything at such noise",
+            hint="give the image noise in pixels, e.g. --sigma 0.05",
         )
     return s
 
