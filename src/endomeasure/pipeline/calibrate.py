@@ -156,8 +156,13 @@ def load_calibration_inputs(session: str | Path):
     # detections only) have no set and are taken.
     usable = [det for det in detections if det.image not in other_images]
     if detections and not usable:
+        what = (
+            f"none of the session's {len(calib_images)} calibration images has detections"
+            if calib_images
+            else "the session has no calibration images"
+        )
         raise BadInputError(
-            "the session has no calibration images: its detections are all of test or scene images",
+            f"{what}: its detections are all of test or scene images",
             path=str(session),
             hint="add calibration images with `endomeasure detect SESSION IMAGES --board "
             "SPEC --set calib`",
