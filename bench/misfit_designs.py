@@ -53,9 +53,9 @@ def misfit_figures(session: Path, model: str = "raytrace", allow_failed: bool = 
     without the model-error term; None when the model is not usable."""
     from endomeasure import defaults
     from endomeasure.errors import EndomeasureError
-    from endomeasure.io.records import load_calibrated_model
     from endomeasure.io.session import open_session
     from endomeasure.measure.board_runs import prediction_zones, within_band
+    from endomeasure.pipeline import calibrated_model
     from endomeasure.pipeline.predict import (
         NoiseAssumptions,
         _board_test_of,
@@ -68,7 +68,7 @@ def misfit_figures(session: Path, model: str = "raytrace", allow_failed: bool = 
         shutil.copy(session, copy)
         with open_session(copy) as reader:
             try:
-                cm = load_calibrated_model(reader, model, copy, allow_failed=allow_failed)
+                cm = calibrated_model(reader, model, copy, allow_failed=allow_failed)
                 bt, _ = _board_test_of(copy, reader, model, cm, defaults.ZONE_MM)
             except EndomeasureError:
                 return None

@@ -199,17 +199,17 @@ def board_figures(session: Path, folder: Path) -> dict | None:
 
     from endomeasure import defaults
     from endomeasure.features.boards import parse_board_spec
-    from endomeasure.io.records import load_calibrated_model
     from endomeasure.io.session import open_session
     from endomeasure.measure.board_runs import test_image_noise
     from endomeasure.measure.predict import ImageNoise, ImageNoiseByImage
+    from endomeasure.pipeline import calibrated_model
     from endomeasure.pipeline.predict import _board_grids, _board_test_of
 
     with tempfile.TemporaryDirectory() as tmp:  # a new board test is not stored
         copy = Path(tmp) / session.name
         shutil.copy(session, copy)
         with open_session(copy) as reader:
-            cm = load_calibrated_model(reader, "raytrace", copy)
+            cm = calibrated_model(reader, "raytrace", copy)
             bt, _ = _board_test_of(copy, reader, "raytrace", cm, defaults.ZONE_MM)
     halves = {(h.image, h.half): h for h in detection_errors(folder, session, sets=("test",))}
     measured = test_image_noise(bt, cm.model, _board_grids(bt))

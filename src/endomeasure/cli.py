@@ -1261,11 +1261,7 @@ def predict_error(
         typer.Option("--no-calibration", help="Leave the calibration covariance out."),
     ] = False,
     no_model_error: Annotated[
-        bool,
-        typer.Option(
-            "--no-model-error",
-            help="Leave out the model misfit the calibration residuals show beyond noise.",
-        ),
+        bool, typer.Option("--no-model-error", help="Leave the calibration's model misfit out.")
     ] = False,
     board_test: Annotated[
         bool, typer.Option("--board-test", help="Predicted vs actual board-test errors.")
@@ -1330,20 +1326,12 @@ def predict_error(
         from endomeasure.pipeline.predict import predict_board_test
 
         report = predict_board_test(session, model, noise, zone_mm=zone_mm, plot=plot)
-        if json_output:
-            _print_json(report.to_dict())
-        else:
-            _render_board_prediction(console, report)
-        return
+        return _emit(report, json_output, console, _render_board_prediction)
     if measurement is not None:
         from endomeasure.pipeline.predict import predict_stored_measurement
 
         r = predict_stored_measurement(session, measurement, noise)
-        if json_output:
-            _print_json(r.to_dict())
-        else:
-            _render_stored_prediction(console, r)
-        return
+        return _emit(r, json_output, console, _render_stored_prediction)
     from endomeasure.pipeline.predict import predict_map
 
     r = predict_map(
@@ -1358,10 +1346,15 @@ def predict_error(
         plot=plot,
         csv=csv,
     )
+    _emit(r, json_output, console, _render_map)
+
+
+def _emit(report: Any, json_output: bool, console: Console, render) -> None:
+    """A report as its JSON document on stdout, or rendered for a person on stderr."""
     if json_output:
-        _print_json(r.to_dict())
+        _print_json(report.to_dict())
     else:
-        _render_map(console, r)
+        render(console, report)
 
 
 def _budget_text(e: Any) -> str:

@@ -208,8 +208,9 @@ class CalibratedModel:
         models stored without one, e.g. by an earlier version).
     misfit : ModelMisfit or None
         What the calibration's residuals hold beyond noise
-        (:func:`~endomeasure.solvers.misfit.fit_misfit`), measured on loading from the
-        stored residuals; None where they do not allow it.
+        (:func:`~endomeasure.solvers.misfit.fit_misfit`): None here; the pipeline's
+        :func:`~endomeasure.pipeline.calibrated_model` measures it from
+        :func:`inlier_residuals`.
     """
 
     name: str
@@ -296,23 +297,21 @@ def load_calibrated_model(
         else None
     )
     return CalibratedModel(
-        name, model, cov, sigma, _calibration_depths(record), stored_verdict(record)[0],
-        _calibration_misfit(record),
-    )  # fmt: skip
+        name, model, cov, sigma, _calibration_depths(record), stored_verdict(record)[0]
+    )
 
 
-_MISFIT_ARRAYS = ("obs_board_points", "obs_image", "obs_half", "obs_pixels", "residuals")
+_RESIDUAL_ARRAYS = ("obs_board_points", "obs_image", "obs_half", "obs_pixels", "residuals")
 
 
-def _calibration_misfit(record: ModelRecord):
-    """The model misfit of a calibration record's inlier residuals, or None."""
-    from endomeasure.solvers.misfit import fit_misfit
-
+def inlier_residuals(record: ModelRecord) -> tuple[np.ndarray, ...] | None:
+    """``(board_points, image, half, pixels, residuals)`` of a calibration record's inlier
+    corners, or None for a record stored without them."""
     a = record.arrays
-    if not all(k in a for k in _MISFIT_ARRAYS):
+    if not all(k in a for k in _RESIDUAL_ARRAYS):
         return None
     use = np.asarray(a["inliers"]).astype(bool) if "inliers" in a else slice(None)
-    return fit_misfit(*(np.asarray(a[k])[use] for k in _MISFIT_ARRAYS))
+    return tuple(np.asarray(a[k])[use] for k in _RESIDUAL_ARRAYS)
 
 
 def _calibration_depths(record: ModelRecord) -> tuple[float, float] | None:

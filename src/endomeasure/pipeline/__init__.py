@@ -1,0 +1,29 @@
+"""The commands' pipelines: one module per command, which import none of each other;
+what two of them share lives here.
+
+The calibrated model a measurement or a prediction uses.
+
+:func:`~endomeasure.io.records.load_calibrated_model` reads what ``calibrate`` stored;
+this adds what the uncertainty needs beyond it and measures from it: the model misfit
+the calibration's residuals show beyond noise (:mod:`endomeasure.solvers.misfit`), so
+that sessions of any version carry it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+__all__ = ["calibrated_model"]
+
+
+def calibrated_model(reader, name: str, session: str | Path, *, allow_failed: bool = False):
+    """The model ``name`` of an open session as a
+    :class:`~endomeasure.io.records.CalibratedModel` with its ``misfit`` (None where the
+    record holds no residuals or too few neighbouring corners)."""
+    from endomeasure.io.records import inlier_residuals, load_calibrated_model
+    from endomeasure.solvers.misfit import fit_misfit
+
+    cm = load_calibrated_model(reader, name, session, allow_failed=allow_failed)
+    residuals = inlier_residuals(reader.model(name))
+    return dataclasses.replace(cm, misfit=None if residuals is None else fit_misfit(*residuals))

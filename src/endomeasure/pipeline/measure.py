@@ -406,6 +406,7 @@ def measure_points(
     from endomeasure.io import records
     from endomeasure.io.session import edit_session, open_session
     from endomeasure.measure.kinds import measure
+    from endomeasure.pipeline import calibrated_model
 
     request = _checked_request(kind, left, right, warn_percent, plot)
     n = _check_count(request, kind)  # before any image is read
@@ -416,7 +417,7 @@ def measure_points(
     plot = _checked_plot(plot, session, store)
     with open_session(session) as reader:
         reader.image_info(image)  # an unknown image is a BadInputError listing the images
-        cm = records.load_calibrated_model(reader, model_name, session)
+        cm = calibrated_model(reader, model_name, session)
         image_pixels = reader.image(image) if request.search else None
     ql, qr, matches, written = _pixel_pairs(cm, request, image_pixels, patch, plot)
     tri = _triangulated(cm.model, model_name, ql, qr)

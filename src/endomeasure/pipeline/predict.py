@@ -243,10 +243,11 @@ def predict_board_test(
     ``board-test-<model>``.
     """
     from endomeasure.io.outputs import PLOT_SUFFIXES, checked_output, checked_session_target
-    from endomeasure.io.records import board_prediction_record, load_calibrated_model
+    from endomeasure.io.records import board_prediction_record
     from endomeasure.io.session import edit_session, open_session
     from endomeasure.measure.board_runs import prediction_zones, within_band
     from endomeasure.measure.board_test import checked_zone_mm
+    from endomeasure.pipeline import calibrated_model
 
     zone = checked_zone_mm(defaults.ZONE_MM if zone_mm is None else zone_mm)
     if store:
@@ -254,7 +255,7 @@ def predict_board_test(
     if plot is not None:
         plot = checked_output(plot, "plot", inputs=[session], suffixes=PLOT_SUFFIXES)
     with open_session(session) as reader:
-        cm = load_calibrated_model(reader, model, session)
+        cm = calibrated_model(reader, model, session)
         if noise.sigma is not None:
             noise.image_noise(cm, f"model {model!r}")  # checked before any work
         bt, new_record = _board_test_of(session, reader, model, cm, zone)
@@ -325,13 +326,13 @@ def predict_stored_measurement(
     """
     from endomeasure.io.records import (
         MEASUREMENT_RECORD,
-        load_calibrated_model,
         measurement_prediction_record,
         stored_measurement,
     )
     from endomeasure.io.session import edit_session, open_session
     from endomeasure.measure.kinds import kind_spec
     from endomeasure.measure.predict import PredictedError, predict_measurement_error
+    from endomeasure.pipeline import calibrated_model
 
     if store:
         from endomeasure.io.outputs import checked_session_target
@@ -340,7 +341,7 @@ def predict_stored_measurement(
     with open_session(session) as reader:
         stored = stored_measurement(reader.record(MEASUREMENT_RECORD, measurement))
         name = model or stored.model
-        cm = load_calibrated_model(reader, name, session)
+        cm = calibrated_model(reader, name, session)
     image_noise = noise.image_noise(cm, f"model {name!r}")
     pred = predict_measurement_error(
         cm.model,
@@ -428,11 +429,11 @@ def _map_model(session, model: str, model_file):
         return cam, None, str(model_file), cam.NAME
     if session is None:
         raise BadInputError("a map needs a session with a calibrated model, or --model-file")
-    from endomeasure.io.records import load_calibrated_model
     from endomeasure.io.session import open_session
+    from endomeasure.pipeline import calibrated_model
 
     with open_session(session) as reader:
-        cm = load_calibrated_model(reader, model, session)
+        cm = calibrated_model(reader, model, session)
     return cm.model, cm, str(session), model
 
 
