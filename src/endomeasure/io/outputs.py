@@ -66,6 +66,17 @@ def is_regular_file(path: str | os.PathLike) -> bool:
         return False
 
 
+def _stat_or_none(path, error: type[BadInputError], what: str, shown) -> os.stat_result | None:
+    """``os.stat`` of ``path``, None if it does not exist; any other failure is one
+    ``error`` naming ``what`` and ``shown``."""
+    try:
+        return os.stat(path)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise error(f"cannot use the {what} ({exc.strerror or exc})", path=str(shown)) from None
+
+
 def _same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
     try:
         return os.path.samefile(a, b)
@@ -141,14 +152,7 @@ def checked_output(
                 path=str(path),
                 hint=f"give a name ending in {' or '.join(allowed)}",
             )
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        st = None
-    except OSError as exc:
-        raise BadInputError(
-            f"cannot use the {what} path ({exc.strerror or exc})", path=str(path)
-        ) from None
+    st = _stat_or_none(path, BadInputError, f"{what} path", path)
     if st is not None and not stat.S_ISREG(st.st_mode):
         raise BadInputError(
             f"the {what} exists and is a {file_kind(st.st_mode)}, not a regular file",
@@ -202,14 +206,7 @@ def checked_output_dir(path: str | os.PathLike, what: str, *, create_parents: bo
     be writable. Nothing is created here.
     """
     path = Path(path)
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        st = None
-    except OSError as exc:
-        raise BadInputError(
-            f"cannot use the {what} ({exc.strerror or exc})", path=str(path)
-        ) from None
+    st = _stat_or_none(path, BadInputError, what, path)
     if st is not None:
         if not stat.S_ISDIR(st.st_mode):
             raise BadInputError(
@@ -251,14 +248,7 @@ def checked_session_target(path: str | os.PathLike, *, create: bool, probe: bool
     """
     given = Path(path)
     target = Path(os.path.realpath(given)) if given.is_symlink() else given
-    try:
-        st = os.stat(target)
-    except FileNotFoundError:
-        st = None
-    except OSError as exc:
-        raise SessionError(
-            f"cannot use the session path ({exc.strerror or exc})", path=str(given)
-        ) from None
+    st = _stat_or_none(target, SessionError, "session path", given)
     if st is not None and not stat.S_ISREG(st.st_mode):
         raise SessionError(
             f"the session path is a {file_kind(st.st_mode)}, not a session file",

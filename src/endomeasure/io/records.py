@@ -250,6 +250,14 @@ def load_calibrated_model(
     ``allow_failed``, for diagnostics such as the board test), is a
     :class:`BadInputError` naming what to do.
     """
+    return calibrated_from_record(
+        stored_model_record(reader, name, session), session, allow_failed=allow_failed
+    )
+
+
+def stored_model_record(reader, name: str, session: str | Path) -> ModelRecord:
+    """The record of model ``name`` of an open session; one the session does not hold is
+    a :class:`BadInputError` naming what to do."""
     names = reader.model_names()
     if name not in names:
         from endomeasure.models import MODELS
@@ -266,7 +274,14 @@ def load_calibrated_model(
             path=str(session),
             hint=hint,
         )
-    record = reader.model(name)
+    return reader.model(name)
+
+
+def calibrated_from_record(
+    record: ModelRecord, session: str | Path, *, allow_failed: bool = False
+) -> CalibratedModel:
+    """:func:`load_calibrated_model` of a record already read."""
+    name = record.name
     if not allow_failed:
         check_usable(record, session)
     model = model_from_record(record)

@@ -66,8 +66,8 @@ measured apart, on a window :data:`GAIN_REACH` times the patch's, where both vie
 same surface (the plane warp maps one onto the other) are smoothed alike
 (:data:`GAIN_SMOOTH_PX`): the texture cancels in the ratio of the two, the log of which is
 fitted by a plane; the reference patch is multiplied by that field before the refinement
-(:func:`_relative_gain`). On the random designs' marks the mean error fell from
--0.016 px to -0.003 px with the scatter unchanged (``docs/accuracy.md``).
+(:func:`_relative_gain`). What it changes on the random designs' scenes:
+``docs/accuracy.md``, "Operator distances on the scenes" (``bench/operator_designs.py``).
 
 Texture criterion
 -----------------

@@ -21,9 +21,10 @@ def calibrated_model(reader, name: str, session: str | Path, *, allow_failed: bo
     """The model ``name`` of an open session as a
     :class:`~endomeasure.io.records.CalibratedModel` with its ``misfit`` (None where the
     record holds no residuals or too few neighbouring corners)."""
-    from endomeasure.io.records import inlier_residuals, load_calibrated_model
+    from endomeasure.io.records import calibrated_from_record, inlier_residuals, stored_model_record
     from endomeasure.solvers.misfit import fit_misfit
 
-    cm = load_calibrated_model(reader, name, session, allow_failed=allow_failed)
-    residuals = inlier_residuals(reader.model(name))
+    record = stored_model_record(reader, name, session)
+    cm = calibrated_from_record(record, session, allow_failed=allow_failed)
+    residuals = inlier_residuals(record)
     return dataclasses.replace(cm, misfit=None if residuals is None else fit_misfit(*residuals))
