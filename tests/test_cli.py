@@ -16,7 +16,15 @@ from typer.testing import CliRunner
 
 from endomeasure import __version__, cli
 from endomeasure.conventions import Half
-from endomeasure.io.session import Detection, ModelRecord, Record, edit_session, open_session
+from endomeasure.io.integrity import seal_file
+from endomeasure.io.session import (
+    FORMAT_VERSION,
+    Detection,
+    ModelRecord,
+    Record,
+    edit_session,
+    open_session,
+)
 
 runner = CliRunner()
 
@@ -76,7 +84,7 @@ def test_info_json_is_one_document_with_the_counts(session):
     result = runner.invoke(cli.app, ["info", str(session), "--json"])
     assert result.exit_code == 0, result.stderr
     doc = json.loads(result.stdout)  # fails on anything but exactly one JSON document
-    assert doc["format_version"] == "1.0"
+    assert doc["format_version"] == FORMAT_VERSION
     assert doc["image_size"] == [64, 48] and doc["split"] == 32
     assert doc["images"] == {"calib": 0, "test": 0, "scene": 0}
     assert doc["boards"] == [{"name": "cb1", "spec": "chessboard:9x6:1.0"}]
@@ -179,6 +187,7 @@ def damage(kind: str, path):
     elif kind == "future-version":
         with h5py.File(path, "r+") as f:
             f.attrs["format_version"] = "2.0"
+        seal_file(path)
     return path
 
 

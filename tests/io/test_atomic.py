@@ -42,8 +42,13 @@ def _new_images():
     ]
 
 
+def _began(path):
+    return path.with_name(path.name + ".began")
+
+
 def _write_new_content(path):
     with edit_session(path) as w:
+        _began(path).touch()  # the edit is under way: a kill from now on lands inside it
         w.set_metadata(split=20)
         w.write_images(_new_images())
         w.write_record(
@@ -111,13 +116,15 @@ def test_a_writer_killed_at_random_moments_leaves_old_or_new_content(tmp_path, r
     killed_mid_edit = 0
     for delay in rng.uniform(0.0, window, KILL_TRIALS):
         shutil.copyfile(pristine, path)
+        _began(path).unlink(missing_ok=True)
         child = _fork.Process(target=_write_new_content, args=(path,))
         child.start()
         time.sleep(delay)
         os.kill(child.pid, signal.SIGKILL)
         child.join()
-        killed_mid_edit += bool(_temps(tmp_path))
-        outcomes[_state_of(path)] += 1
+        state = _state_of(path)
+        killed_mid_edit += _began(path).exists() and state == "old"
+        outcomes[state] += 1
         # the killed writer's lock is gone and its temp file is cleaned by the next edit
         with edit_session(path, lock_timeout=5.0) as w:
             w.write_record(Record("r", "after-kill"))

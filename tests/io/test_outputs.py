@@ -9,6 +9,7 @@ import pytest
 
 from endomeasure.errors import BadInputError, SessionError
 from endomeasure.io.export import _atomic_write
+from endomeasure.io.integrity import seal_file
 from endomeasure.io.outputs import (
     PLOT_SUFFIXES,
     checked_output,
@@ -137,5 +138,6 @@ def test_a_crafted_image_size_is_refused_on_open(session):
 
     with h5py.File(session, "r+") as h5:
         h5["metadata"].attrs["image_size"] = np.array([64000, 48000])
+    seal_file(session)
     with pytest.raises(SessionError, match="beyond the limit"):
         open_session(session)

@@ -16,6 +16,7 @@ from hypothesis.extra import numpy as hnp
 
 from endomeasure.conventions import Half
 from endomeasure.errors import BadInputError, SessionError, SessionVersionError
+from endomeasure.io.integrity import seal_file
 from endomeasure.io.session import (
     FORMAT_VERSION,
     Detection,
@@ -272,6 +273,7 @@ def test_truncated_session_is_a_session_error(session_path, fraction):
 def set_root_version(path, version):
     with h5py.File(path, "r+") as f:
         f.attrs["format_version"] = version
+    seal_file(path)
 
 
 def test_future_major_version_is_refused_naming_both_versions(session_path):
@@ -291,6 +293,7 @@ def test_future_major_version_is_refused_naming_both_versions(session_path):
 def test_future_major_version_of_one_group_is_refused(session_path):
     with h5py.File(session_path, "r+") as f:
         f["models/pinhole"].attrs["version"] = "3.1"
+    seal_file(session_path)
     with open_session(session_path) as s:
         assert s.image_names()  # other content still reads
         with pytest.raises(
@@ -306,6 +309,7 @@ def test_newer_minor_version_reads_skips_unknown_types_and_is_not_downgraded(ses
         extra.attrs["type"] = "image_reference"
         extra.attrs["version"] = "1.0"
         f.create_group("annotations").attrs["type"] = "annotations"
+    seal_file(session_path)
     with open_session(session_path) as s:
         assert "future-thing" not in s.image_names()
         assert s.metadata().format_version == "1.7"

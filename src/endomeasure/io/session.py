@@ -61,6 +61,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import io
 import json
 import math
 import os
@@ -87,6 +88,18 @@ from endomeasure.errors import (
 )
 from endomeasure.io._lock import DEFAULT_LOCK_TIMEOUT_S, SessionLock
 from endomeasure.io.image_header import checked_image_size
+from endomeasure.io.integrity import (
+    CONTAINERS,
+    USERBLOCK_SIZE,
+    DamageReport,
+    FileCheck,
+    check_file,
+    check_image,
+    damage_report,
+    item_paths,
+    seal_image,
+    write_manifest,
+)
 from endomeasure.io.outputs import (
     SESSION_TMP_SUFFIX,
     checked_session_target,
@@ -113,9 +126,12 @@ __all__ = [
 
 FORMAT_NAME = "session"
 """Value of the root attribute ``endomeasure_format``."""
-FORMAT_VERSION = "1.0"
-"""The version this code writes; it reads every ``1.x``."""
+FORMAT_VERSION = "1.1"
+"""The version this code writes; it reads every ``1.x``. 1.1 added the checksums
+(:mod:`endomeasure.io.integrity`); a 1.0 file is read unchecked and upgraded by its
+first edit."""
 _READ_MAJOR = 1
+_WRITE_VERSION = tuple(int(n) for n in FORMAT_VERSION.split("."))
 _NODE_VERSION = "1.0"
 IMAGE_SETS = ("calib", "test", "scene")
 """Image sets: calibration images, test images of a known board, scenes to measure."""
@@ -515,8 +531,8 @@ def _translating_errors(method):
     return wrapper
 
 
-def _open_h5(path: Path, mode: str) -> h5py.File:
-    """Open and validate a session file (existence, HDF5, endomeasure, version)."""
+def _check_session_path(path: Path) -> None:
+    """Refuse a path that is not an existing regular HDF5 file, before opening it."""
     spath = str(path)
     if not path.exists():
         raise SessionError(
@@ -543,16 +559,64 @@ def _open_h5(path: Path, mode: str) -> h5py.File:
             path=spath,
             hint="give an endomeasure session file (.h5)",
         )
+
+
+def _opened(source: Path | io.BytesIO, mode: str, path: Path) -> h5py.File:
+    """h5py's handle on a session file or its bytes, its root attributes checked."""
     try:
-        h5 = h5py.File(spath, mode)
+        h5 = h5py.File(source, mode)
     except OSError as exc:
-        raise _damaged(spath, exc) from exc
+        raise _damaged(str(path), exc) from exc
     try:
-        _check_root(h5, spath)
+        _check_root(h5, str(path))
     except BaseException:
         h5.close()
         raise
     return h5
+
+
+def _refuse_damaged(path: Path, check: FileCheck, image: bytes | None = None) -> None:
+    """Raise a SessionError naming what is damaged when the file checksum failed."""
+    if not check.damaged:
+        return
+    source = io.BytesIO(image) if image is not None else path
+    try:
+        h5 = h5py.File(source, "r")
+    except Exception as exc:  # noqa: BLE001 - HDF5 cannot open it: that is the answer
+        report = DamageReport(readable=False, detail=" ".join(str(exc).split())[:120])
+    else:
+        with h5:
+            # a file of another major version may keep its checksum differently: say so
+            version = h5.attrs.get("format_version")
+            try:
+                major = _parse_version(version, "", "")[0]
+            except SessionError:
+                major = _READ_MAJOR  # unreadable: the damage report says what is wrong
+            if major != _READ_MAJOR:
+                _check_major(version, "the file", str(path))
+            report = damage_report(h5)
+    repair = f"`endomeasure repair {path.name} -o NEW.h5`"
+    if not report.readable:
+        raise SessionError(
+            f"the session file is truncated or damaged ({check.detail}; {report.detail})",
+            path=str(path),
+            hint=f"restore it from a backup; {repair} keeps what can be read",
+        )
+    total = len(report.intact) + len(report.damaged)
+    if not report.damaged:
+        raise SessionError(
+            f"the session file is damaged outside its stored items ({check.detail}); "
+            f"all {total} items are intact",
+            path=str(path),
+            hint=f"{repair} copies them into a new session file",
+        )
+    names = ", ".join(list(report.damaged)[:3]) + (" ..." if len(report.damaged) > 3 else "")
+    raise SessionError(
+        f"the session file is damaged: {len(report.damaged)} of {total} stored items differ "
+        f"from what was written ({names})",
+        path=str(path),
+        hint=f"{repair} keeps the {len(report.intact)} intact ones, or restore it from a backup",
+    )
 
 
 def _check_root(h5: h5py.File, path: str) -> None:
@@ -578,9 +642,12 @@ def _check_root(h5: h5py.File, path: str) -> None:
 class Session:
     """A read-only view of a session file. Create it with :func:`open_session`."""
 
-    def __init__(self, path: Path, h5: h5py.File):
+    def __init__(self, path: Path, h5: h5py.File, *, checksum: str = "unchecked"):
         self.path = Path(path)
         self._h5 = h5
+        self.checksum = checksum
+        """``"ok"``: the file checksum matched when it was opened; ``"unchecked"``: a
+        format 1.0 file, which has none (:class:`~endomeasure.io.integrity.FileCheck`)."""
 
     # context management
     def close(self) -> None:
@@ -919,6 +986,10 @@ class SessionWriter(Session):
     replace an existing item of the same key.
     """
 
+    def __init__(self, path: Path, h5: h5py.File, *, checksum: str = "unchecked"):
+        super().__init__(path, h5, checksum=checksum)
+        self._changed: set[str] = set()  # item paths written: their digests are renewed
+
     def _container(self, location: str, type_name: str) -> Any:
         node = self._node(location, type_name)
         if node is None:
@@ -931,6 +1002,7 @@ class SessionWriter(Session):
             del parent[name]
         node = parent.create_group(name)
         _stamp(node, type_name)
+        self._changed.add(node.name.lstrip("/"))
         return node
 
     def set_metadata(
@@ -951,6 +1023,7 @@ class SessionWriter(Session):
             Further metadata, for example ``split_method="auto"``.
         """
         node = self._container("metadata", "metadata")
+        self._changed.add("metadata")
         values: dict[str, Any] = dict(attrs)
         units: dict[str, str] = {}
         if image_size is not None:
@@ -1012,6 +1085,7 @@ class SessionWriter(Session):
                 shuffle=pixels.dtype.itemsize > 1,
             )
             _stamp(dset, "image")
+            self._changed.add(dset.name.lstrip("/"))
             dset.attrs["original_path"] = str(rec.original_path)
             dset.attrs["sha256"] = str(rec.sha256)
             dset.attrs["set"] = rec.image_set
@@ -1158,12 +1232,13 @@ def _channel_order(pixels: np.ndarray) -> str:
 def open_session(
     path: str | os.PathLike, *, lock_timeout: float | None = DEFAULT_LOCK_TIMEOUT_S
 ) -> Session:
-    """Open a session for reading; see the module docstring.
+    """Open a session for reading, after checking its file checksum; see the module
+    docstring.
 
     Raises
     ------
     SessionError
-        Missing, not HDF5, damaged, or not a session.
+        Missing, not HDF5, damaged (naming the damaged items), or not a session.
     SessionVersionError
         An unknown major format version.
     """
@@ -1171,12 +1246,15 @@ def open_session(
     if path.is_symlink():  # lock the target, as writers do
         path = Path(os.path.realpath(path))
     if not is_regular_file(path):
-        _open_h5(path, "r")  # raises the reason; no lock file is left beside a wrong path
-    # The shared lock only covers the open: once open, the file is an immutable snapshot
-    # because writers replace it rather than change it.
+        _check_session_path(path)  # raises the reason; no lock file is left beside it
+    # The shared lock only covers the check and the open: once open, the file is an
+    # immutable snapshot because writers replace it rather than change it.
     with SessionLock(path, exclusive=False, timeout=lock_timeout, required=False):
-        h5 = _open_h5(path, "r")
-    session = Session(path, h5)
+        _check_session_path(path)
+        check = check_file(path)
+        _refuse_damaged(path, check)
+        h5 = _opened(path, "r", path)
+    session = Session(path, h5, checksum=check.status)
     try:
         session.metadata()  # a crafted image size or split is refused before any read
     except BaseException:
@@ -1214,6 +1292,92 @@ def glob_escape(text: str) -> str:
     return re.sub(r"([*?\[])", r"[\1]", text)
 
 
+_FREE_SPACE_MARGIN = 1 << 20
+"""Bytes left free on the disk after a session is written (for the file system's own use)."""
+
+
+def _read_verified(path: Path) -> tuple[bytes, FileCheck]:
+    """The bytes of an existing session file, its checksum checked (damage refused)."""
+    _check_session_path(path)
+    with open(path, "rb") as stream:
+        image = stream.read()
+    check = check_image(image)
+    _refuse_damaged(path, check, image)
+    return image, check
+
+
+def _new_file(buffer: io.BytesIO) -> h5py.File:
+    """A fresh session in ``buffer``, with the user block that will hold its checksum."""
+    h5 = h5py.File(buffer, "w", userblock_size=USERBLOCK_SIZE)
+    h5.attrs["endomeasure_format"] = FORMAT_NAME
+    h5.attrs["format_version"] = FORMAT_VERSION
+    h5.attrs["created_by"] = f"endomeasure {__version__}"
+    return h5
+
+
+def _upgraded(image: bytes, buffer: io.BytesIO, path: Path) -> h5py.File:
+    """A format 1.0 session (no user block) copied into ``buffer`` with one."""
+    h5 = _new_file(buffer)
+    with _opened(io.BytesIO(image), "r", path) as old:
+        for key, value in old.attrs.items():
+            if key != "format_version":
+                h5.attrs[key] = value
+        for key in old.keys():
+            old.copy(old[key], h5, name=key)
+    return h5
+
+
+def _write_file(path: Path, image: bytes | bytearray, mode: int) -> None:
+    """Replace ``path`` by ``image`` atomically: a temp file beside it, fsynced, renamed.
+
+    Space is checked first, and a write that fails (disk full, I/O error) removes the
+    temp file and leaves the session as it was, with one line saying why.
+    """
+    with contextlib.suppress(OSError):
+        free = shutil.disk_usage(path.parent).free
+        if free < len(image) + _FREE_SPACE_MARGIN:
+            raise SessionError(
+                f"not enough free space to write the session: it needs "
+                f"{len(image) / 1e6:.1f} MB, {free / 1e6:.1f} MB are free",
+                path=str(path),
+                hint="free some space on that disk and run the command again; "
+                "the session is unchanged",
+            )
+    try:
+        fd, tmp_name = tempfile.mkstemp(
+            dir=path.parent, prefix=f".{path.name}.", suffix=_TMP_SUFFIX
+        )
+    except OSError as exc:
+        raise SessionError(
+            f"cannot write beside the session ({exc.strerror or exc})",
+            path=str(path),
+            hint="the session's folder must be writable",
+        ) from None
+    tmp = Path(tmp_name)
+    try:
+        try:
+            view = memoryview(image)
+            while view:
+                view = view[os.write(fd, view) :]
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        if isinstance(exc, OSError):
+            raise SessionError(
+                f"cannot write the session ({exc.strerror or exc})",
+                path=str(path),
+                hint="free some space or fix the disk and run the command again; "
+                "the session is unchanged",
+            ) from None
+        raise
+    _fsync_path(path.parent, directory=True)
+
+
 @contextlib.contextmanager
 def edit_session(
     path: str | os.PathLike,
@@ -1222,6 +1386,10 @@ def edit_session(
     lock_timeout: float | None = DEFAULT_LOCK_TIMEOUT_S,
 ) -> Iterator[SessionWriter]:
     """Edit a session atomically under its exclusive lock; see the module docstring.
+
+    The session is checked (its file checksum) and edited in memory; on success the
+    manifest and checksum are brought up to date and the new bytes replace the file.
+    A damaged session is refused, so a writer never builds on damaged data.
 
     Parameters
     ----------
@@ -1234,7 +1402,8 @@ def edit_session(
     Raises
     ------
     SessionError, SessionVersionError
-        As :func:`open_session`; also when the lock is not granted in time.
+        As :func:`open_session`; also when the lock is not granted in time, and when the
+        new file cannot be written (disk full), the session then unchanged.
     """
     # a symlink is written through (its target replaced, the link kept); a hard-linked
     # session, a FIFO, a device or an unwritable folder are refused before any work
@@ -1248,48 +1417,101 @@ def edit_session(
                 path=str(path),
                 hint="check the path, or start a session with a command that creates one",
             )
-        if exists:  # validate before copying: clear errors, no work
-            with Session(path, _open_h5(path, "r")) as current:
-                current.metadata()
-        try:
-            fd, tmp_name = tempfile.mkstemp(
-                dir=path.parent, prefix=f".{path.name}.", suffix=_TMP_SUFFIX
-            )
-        except OSError as exc:
-            raise SessionError(
-                f"cannot write beside the session ({exc.strerror or exc})",
-                path=str(path),
-                hint="the session's folder must be writable",
-            ) from None
-        tmp = Path(tmp_name)
-        h5 = None
-        try:
-            os.close(fd)
-            if exists:
-                shutil.copyfile(path, tmp)
-                shutil.copymode(path, tmp)
-                h5 = h5py.File(tmp, "r+")
+        buffer = io.BytesIO()
+        if exists:
+            image, check = _read_verified(path)
+            mode = stat.S_IMODE(os.stat(path).st_mode)
+            if check.status == "ok":
+                buffer = io.BytesIO(image)
+                h5 = _opened(buffer, "r+", path)
             else:
-                umask = os.umask(0)
-                os.umask(umask)
-                os.chmod(tmp, 0o666 & ~umask)
-                h5 = h5py.File(tmp, "w")
-                h5.attrs["endomeasure_format"] = FORMAT_NAME
-                h5.attrs["format_version"] = FORMAT_VERSION
-                h5.attrs["created_by"] = f"endomeasure {__version__}"
-            writer = SessionWriter(path, h5)
+                h5 = _upgraded(image, buffer, path)
+            del image
+        else:
+            umask = os.umask(0)
+            os.umask(umask)
+            mode = 0o666 & ~umask
+            h5 = _new_file(buffer)
+        try:
+            writer = SessionWriter(path, h5, checksum="ok")
+            writer.metadata()  # validate before any work: clear errors
+            if _parse_version(writer.format_version, "the file", str(path)) < _WRITE_VERSION:
+                h5.attrs["format_version"] = FORMAT_VERSION  # it gains the checksums
             yield writer
             writer._h5 = None
-            h5.flush()
+            write_manifest(h5, writer._changed)
             h5.close()
             h5 = None
-            _fsync_path(tmp)
-            os.replace(tmp, path)
-            _fsync_path(path.parent, directory=True)
-        except BaseException:
+            image = bytearray(buffer.getbuffer())
+            buffer.close()
+            seal_image(image)
+            _write_file(path, image, mode)
+        finally:
             if h5 is not None:
                 with contextlib.suppress(Exception):
                     h5.close()
-            with contextlib.suppress(OSError):
-                tmp.unlink()
-            raise
+
+
+def salvage_session(
+    source: str | os.PathLike, target: str | os.PathLike
+) -> tuple[DamageReport, str]:
+    """Copy the intact items of a session into a new session file ``target``.
+
+    Each item is kept when its digest matches the manifest (all of them when the file
+    checksum matches; every readable one of a format 1.0 file, which has no manifest).
+
+    Returns
+    -------
+    report : DamageReport
+        What was kept (``intact``) and what was left out and why (``damaged``).
+    checksum : str
+        The source's file check: ``"ok"``, ``"unchecked"`` or ``"damaged"``.
+    """
+    source, target = Path(source), Path(target)
+    _check_session_path(source)
+    if os.path.lexists(target):
+        raise BadInputError(
+            "the repaired session must be a new file, and this one exists",
+            path=str(target),
+            hint="give a new file name with -o",
+        )
+    with SessionLock(source, exclusive=False, required=False):
+        with open(source, "rb") as stream:
+            image = stream.read()
+    check = check_image(image)
+    try:
+        old = h5py.File(io.BytesIO(image), "r")
+    except OSError as exc:
+        raise SessionError(
+            "nothing can be salvaged: HDF5 cannot open the file "
+            f"({' '.join(str(exc).split())[:120]})",
+            path=str(source),
+            hint="restore it from a backup",
+        ) from None
+    with old:
+        _check_root(old, str(source))
+        if check.status == "damaged":
+            report = damage_report(old)
+            if not report.readable:
+                raise SessionError(
+                    f"nothing can be salvaged: {report.detail}",
+                    path=str(source),
+                    hint="restore it from a backup",
+                )
+        else:
+            report = DamageReport(intact=list(item_paths(old)))
+        with edit_session(target, create=True) as writer:
+            new = writer._h5
+            creator = old.attrs.get("created_by")
+            if creator is not None:
+                new.attrs["created_by"] = creator
+            for item in report.intact:
+                parts = item.split("/")
+                for depth, type_name in enumerate(CONTAINERS.get(parts[0], ())):
+                    location = "/".join(parts[: depth + 1])
+                    if location not in new:
+                        _stamp(new.create_group(location), type_name)
+                old.copy(old[item], new, name=item)
+                writer._changed.add(item)
+            writer.metadata()  # what was kept must read as a session
+    return report, check.status
