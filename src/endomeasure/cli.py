@@ -527,6 +527,11 @@ def info(
     split = "unknown" if summary.split is None else f"column {summary.split}"
     console.print(f"[bold]{summary.path}[/bold]  (session format {summary.format_version})")
     console.print(f"image size {size}, split {split}, created by {summary.created_by}")
+    console.print(
+        "checksum: matches (SHA-256 of the whole file)"
+        if summary.checksum == "ok"
+        else "checksum: none (a format 1.0 file; its next edit adds one)"
+    )
     images = ", ".join(f"{n} {name}" for name, n in summary.images.items())
     console.print(f"images: {images}")
 
@@ -973,6 +978,38 @@ def export(
         _print_json({"session": str(session), "model": model, "format": fmt, "out": str(path)})
         return
     _stderr_console().print(f"{model} from {session} written to {path} ({fmt})")
+
+
+@command("repair")
+def repair(
+    session: Annotated[Path, typer.Argument(help="Damaged session file.", show_default=False)],
+    out: Annotated[
+        Path, typer.Option("-o", "--out", help="New session file for what is intact.")
+    ],
+    json_output: JsonOption = False,
+) -> None:
+    """Copy the intact items of a damaged session into a new session file.
+
+    Each item (an image, a detection, a model, a record ...) is kept when its digest
+    matches the session's manifest. Exit 0 when everything was kept, 1 when some items
+    were damaged and left out (they are listed), 2 when nothing could be read.
+    """
+    from endomeasure.pipeline.info import repair_session
+
+    report = repair_session(session, out)
+    if json_output:
+        _print_json(report.to_dict())
+    else:
+        console = _stderr_console()
+        for item, why in report.dropped.items():
+            console.print(f"left out {item}: {why}", markup=False)
+        console.print(
+            f"{len(report.kept)} items of {session} written to {out}"
+            + ("" if report.complete else f", {len(report.dropped)} damaged ones left out"),
+            markup=False,
+        )
+    if not report.complete:
+        raise typer.Exit(1)
 
 
 @command("measure")

@@ -8,9 +8,9 @@ from typing import Any
 
 from endomeasure.conventions import Half
 from endomeasure.io.records import stored_verdict
-from endomeasure.io.session import IMAGE_SETS, open_session
+from endomeasure.io.session import IMAGE_SETS, open_session, salvage_session
 
-__all__ = ["SessionSummary", "summarise_session"]
+__all__ = ["RepairReport", "SessionSummary", "repair_session", "summarise_session"]
 
 
 @dataclass(frozen=True)
@@ -20,6 +20,9 @@ class SessionSummary:
     Attributes
     ----------
     path, format_version, created_by : str
+    checksum : str
+        ``ok`` (the file checksum matched) or ``unchecked`` (a format 1.0 file, which
+        has none until its next edit).
     image_size : [width, height] or None, px
     split : int or None, px
         First column of the right half.
@@ -41,6 +44,7 @@ class SessionSummary:
     path: str
     format_version: str
     created_by: str
+    checksum: str
     image_size: list[int] | None
     split: int | None
     images: dict[str, int]
@@ -110,6 +114,7 @@ def summarise_session(path: str | os.PathLike) -> SessionSummary:
             path=str(path),
             format_version=meta.format_version,
             created_by=meta.created_by,
+            checksum=session.checksum,
             image_size=None if meta.image_size is None else list(meta.image_size),
             split=meta.split,
             images=counts,
@@ -118,3 +123,44 @@ def summarise_session(path: str | os.PathLike) -> SessionSummary:
             models=models,
             records=records,
         )
+
+
+@dataclass(frozen=True)
+class RepairReport:
+    """What ``endomeasure repair`` kept of a session.
+
+    Attributes
+    ----------
+    source, out : str
+    checksum : str
+        The source's file check: ``ok``, ``unchecked`` (format 1.0) or ``damaged``.
+    kept : list of str
+        Items copied into ``out`` (their digests matched).
+    dropped : dict of str to str
+        Items left out, with why.
+    """
+
+    source: str
+    out: str
+    checksum: str
+    kept: list[str]
+    dropped: dict[str, str]
+
+    @property
+    def complete(self) -> bool:
+        return not self.dropped
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**asdict(self), "complete": self.complete}
+
+
+def repair_session(source: str | os.PathLike, out: str | os.PathLike) -> RepairReport:
+    """Copy the intact items of a (damaged) session into the new session file ``out``."""
+    report, checksum = salvage_session(source, out)
+    return RepairReport(
+        source=str(source),
+        out=str(out),
+        checksum=checksum,
+        kept=list(report.intact),
+        dropped=dict(report.damaged),
+    )
