@@ -39,18 +39,20 @@ edits)::
         w.write_record(Record("measurement", "m001", attrs={...}, arrays={...}))
 
 All edits of one ``with`` block form one transaction. The session's lock (an exclusive
-``flock`` on ``<session>.lock``) is held for the whole block, the current file is copied
-to a temporary file beside it, the edits go to the copy, and on success the copy is
-flushed, fsynced and renamed over the session (then the directory is fsynced). If the
-block raises, or the process dies, the session file is untouched. Keep the block short:
+``flock`` on ``<session>.lock``) is held for the whole block, the current file is read
+and its checksum checked (:mod:`endomeasure.io.integrity`), the edits go to a copy in
+memory, and on success the copy gets its new manifest and checksum and is written to a
+temporary file beside the session, fsynced and renamed over it (then the directory is
+fsynced). If the block raises, the disk is full, or the process dies, the session file
+is untouched. Keep the block short:
 compute first (from a snapshot), then open the edit to store the results; a second
 command that edits meanwhile is serialised by the lock and its work is kept, because each
 edit starts from the file as it is when the lock is granted.
 
 Errors
 ------
-A missing file, a file that is not HDF5, a truncated or damaged file, or an HDF5 file
-that is not a session raise :class:`~endomeasure.errors.SessionError`; a session written
+A missing file, a file that is not HDF5, a truncated or damaged file (its checksum fails:
+the message names the damaged items), or an HDF5 file that is not a session raise :class:`~endomeasure.errors.SessionError`; a session written
 by an unknown major format version raises
 :class:`~endomeasure.errors.SessionVersionError` naming both versions. Asking for an item
 the session does not hold raises :class:`~endomeasure.errors.BadInputError` listing what
@@ -1338,7 +1340,8 @@ def _write_file(path: Path, image: bytes | bytearray, mode: int) -> None:
         if free < len(image) + _FREE_SPACE_MARGIN:
             raise SessionError(
                 f"not enough free space to write the session: it needs "
-                f"{len(image) / 1e6:.1f} MB, {free / 1e6:.1f} MB are free",
+                f"{len(image) / 1e6:.1f} MB and {_FREE_SPACE_MARGIN / 1e6:.0f} MB to spare, "
+                f"{free / 1e6:.1f} MB are free",
                 path=str(path),
                 hint="free some space on that disk and run the command again; "
                 "the session is unchanged",
