@@ -7,10 +7,11 @@ touching the docs). For each command and trial a fresh tmpfs holds a copy of the
 command's starting session and a filler file; half of the trials leave a random amount
 of free space (from none to 1.5x what the command's new session needs), the other half
 start with room and let a second process fill the disk at a random moment (over 1.2x
-the command's duration, so that some commands finish first). The real command line runs on it and must: exit 0 (it fitted) or 2 with
-exactly one `error:` line and no traceback, never crash on a signal; leave the old or
-the new session (the old byte for byte, or a new one whose checksum matches and which
-holds what the command adds); and leave no temporary file.
+the command's duration, so that some commands finish first). The real command line
+runs on it and must either end as it does with room (the same exit code, a new session
+whose checksum matches and which holds what the command adds) or exit 2 with exactly one
+`error:` line and the old session byte for byte; never print a traceback or crash on a
+signal; and leave no temporary file.
 
 Trials go to ``WORK/disk_full.jsonl`` as they finish. Writes the "disk-full" section of
 docs/robustness.md unless ``--no-write``; exits 3 when a trial broke the contract.
@@ -126,7 +127,9 @@ def state_of(path: Path, old: bytes, command: str) -> str:
 
 
 def trial(point: Path, command: str, base: Path, argv: list[str], rng, concurrent: bool,
-          needed: int, duration: float) -> dict:  # fmt: skip
+          roomy: subprocess.CompletedProcess, needed: int, duration: float) -> dict:  # fmt: skip
+    """One run on a tmpfs that is, or becomes, full; ``roomy`` is the same command's run
+    with room (its exit code is what a completed trial must give)."""
     session = point / "s.h5"
     mount(point, 4 * base.stat().st_size + (8 << 20))
     try:
@@ -149,17 +152,15 @@ def trial(point: Path, command: str, base: Path, argv: list[str], rng, concurren
         lines = done.stderr.strip().splitlines()
         row.update(
             exit=done.returncode,
-            error=lines[-1] if done.returncode else "",
-            one_line=done.returncode == 0 or (len(lines) == 1 and lines[0].startswith("error:")),
+            error=lines[-1] if done.returncode == 2 else "",
+            one_line=len(lines) == 1 and lines[0].startswith("error:"),
             traceback="Traceback" in done.stderr or "bug" in done.stderr,
             state=state_of(session, old, command),
             temps=[p.name for p in point.iterdir() if p.name.endswith(".endomeasure-tmp")],
         )
-        row["ok"] = (
-            row["exit"] in (0, 2) and row["one_line"] and not row["traceback"]
-            and row["state"] in ("old", "new") and not row["temps"]
-            and (row["state"] == "new") == (row["exit"] == 0)
-        )  # fmt: skip
+        completed = row["state"] == "new" and row["exit"] == roomy.returncode
+        refused = row["state"] == "old" and row["exit"] == 2 and row["one_line"]
+        row["ok"] = (completed or refused) and not row["traceback"] and not row["temps"]
         return row
     finally:
         umount(point)
@@ -187,11 +188,13 @@ def main(argv=None) -> int:
         probe = work / "probe.h5"
         shutil.copyfile(base, probe)
         start = time.perf_counter()
-        endomeasure(*(a.replace("{S}", str(probe)) for a in command_argv), check=True)
+        roomy = endomeasure(*(a.replace("{S}", str(probe)) for a in command_argv), check=True)
         duration = time.perf_counter() - start
         needed = probe.stat().st_size
         for index in range(args.trials):
-            row = trial(point, command, base, command_argv, rng, index % 2 == 1, needed, duration)
+            concurrent = index % 2 == 1
+            row = trial(point, command, base, command_argv, rng, concurrent, roomy, needed,
+                        duration)  # fmt: skip
             out.write(json.dumps(row) + "\n")
             out.flush()
             rows.append(row)
@@ -220,8 +223,10 @@ The one-line errors seen:
 
 {listed}
 
-Trials that broke the contract (a crash, a traceback, more than one line, a session
-neither old nor new, a temporary file left): **{broken}** (target 0, issue 18) - {check}.
+A trial keeps the contract when it ends as the same command does with room (same exit
+code, new session) or refuses with one line, exit 2 and the old session byte for byte.
+Trials that broke it (a crash, a traceback, another exit code, a session neither old nor
+new, a temporary file left): **{broken}** (target 0, issue 18) - {check}.
 """
     return report.finish({SECTION: body})
 
