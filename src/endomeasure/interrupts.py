@@ -1,0 +1,232 @@
+"""Ctrl-C and SIGTERM: one clean path out of any command, and workers that die with it.
+
+A command process takes over SIGINT and SIGTERM from its first line (:func:`install`).
+While it starts, parses its options, and once its outcome is decided, a signal is only
+remembered; while the command works (:func:`arm` .. :func:`disarm`) the first signal
+raises :class:`Interrupted` in the main thread (a ``KeyboardInterrupt``, so no ``except
+Exception`` swallows it). Only the first signal raises: later ones are ignored, so that
+the clean-up the first one started (temp files removed, worker processes ended) runs to
+its end and the user sees one line. Every signal is remembered (:func:`received`): an
+interrupt that a library turned into an ordinary error, or swallowed, is still reported
+as the interrupt it was.
+
+:func:`deferred` holds both signals back (``pthread_sigmask``) around a step that must
+not be cut (the rename that replaces a session); :func:`worker_initializer` makes a pool
+worker ignore both (its parent reports) and die when its parent dies, even by SIGKILL.
+
+Standard library only; nothing here prints or exits the process.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+
+__all__ = [
+    "HANDLED",
+    "Interrupted",
+    "arm",
+    "blocked",
+    "deferred",
+    "disarm",
+    "handling",
+    "install",
+    "received",
+    "worker_initializer",
+]
+
+HANDLED = (signal.SIGINT, signal.SIGTERM)
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+_PARENT_POLL_S = 0.5
+"""How often a worker without PR_SET_PDEATHSIG checks that its parent still lives."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM received by a command; exit code ``128 + signum`` (130, 143)."""
+
+    def __init__(self, signum: int = signal.SIGINT):
+        self.signum = int(signum)
+        super().__init__(self.signal_name)
+
+    @property
+    def signal_name(self) -> str:
+        return signal.Signals(self.signum).name
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+class _State:
+    received: int | None = None  # the first signal, once one came
+
+
+_STATE = _State()
+
+
+def _raise_first(signum: int, frame: object) -> None:
+    if _STATE.received is not None:
+        return  # the first one is being handled; let its clean-up finish
+    _STATE.received = signum
+    raise Interrupted(signum)
+
+
+def _remember(signum: int, frame: object) -> None:
+    if _STATE.received is None:
+        _STATE.received = signum
+
+
+def _in_main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+def _can_block() -> bool:
+    return hasattr(signal, "pthread_sigmask") and _in_main_thread()
+
+
+def install() -> None:
+    """Take over SIGINT and SIGTERM in this process (main thread only), at first only
+    remembering them: :func:`arm` makes them raise. A signal the process was started
+    with ignored (``nohup``, a background job) stays ignored."""
+    if not _in_main_thread():
+        return
+    for signum in HANDLED:
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            signal.signal(signum, _remember)
+    _STATE.received = None
+
+
+def _set_mode(handler) -> None:
+    if not _in_main_thread():
+        return
+    for signum in HANDLED:
+        if signal.getsignal(signum) in (_raise_first, _remember):
+            signal.signal(signum, handler)
+
+
+def arm() -> None:
+    """From now on the first signal raises :class:`Interrupted`; one remembered before
+    (while the process started, or parsed its options) raises now."""
+    _set_mode(_raise_first)
+    came = received()
+    if came is not None:
+        raise came
+
+
+def disarm() -> None:
+    """From now on a signal is only remembered: the command's outcome is decided (its
+    line written, or its work done), and the process ends with that outcome."""
+    _set_mode(_remember)
+
+
+def received() -> Interrupted | None:
+    """The interrupt this process received (whether or not it reached the caller), or None."""
+    return None if _STATE.received is None else Interrupted(_STATE.received)
+
+
+def _installed() -> bool:
+    return any(signal.getsignal(s) in (_raise_first, _remember) for s in HANDLED)
+
+
+@contextlib.contextmanager
+def handling() -> Iterator[None]:
+    """:func:`install` for a block, and the handlers from before restored after it (a
+    command run inside another program, e.g. a test, leaves no trace). In a process that
+    installed them for good (the command's own) this changes nothing."""
+    if not _in_main_thread() or _installed():
+        yield
+        return
+    saved = {signum: signal.getsignal(signum) for signum in HANDLED}
+    install()
+    try:
+        yield
+    finally:
+        for signum, handler in saved.items():
+            signal.signal(signum, handler)
+        _STATE.received = None
+
+
+@contextlib.contextmanager
+def blocked() -> Iterator[None]:
+    """SIGINT and SIGTERM held back in this thread for the block; one that came meanwhile
+    is delivered (and raises) when the block ends. Processes forked inside the block start
+    with both blocked, until :func:`worker_initializer` sets them up."""
+    if not _can_block():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, HANDLED)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)  # runs the handlers of pending ones
+
+
+@contextlib.contextmanager
+def deferred() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back for a step that must not be cut short (replacing a
+    session): an interrupt that came before, also one a library swallowed, is raised
+    instead of starting the step; one that comes during it raises right after it."""
+    came = received()
+    if came is not None:
+        raise came
+    if not _can_block():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, HANDLED)
+    if signal.sigpending() & set(HANDLED):
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)  # delivered now: its handler raises
+        came = received()
+        if came is not None:
+            raise came
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, HANDLED)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def worker_initializer(parent_pid: int) -> None:
+    """Set up a pool worker: SIGINT ignored (the parent reports the interrupt and ends
+    the pool), SIGTERM back to its default (ending the worker at once), and the worker
+    killed when its parent dies (``PR_SET_PDEATHSIG`` on Linux; elsewhere a thread that
+    watches the parent's pid).
+
+    Parameters
+    ----------
+    parent_pid : int
+        The pid of the process that started the pool.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    _STATE.received = None
+    if hasattr(signal, "pthread_sigmask"):  # the parent forked it with both blocked
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, HANDLED)
+    if not _die_with_parent():
+        threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
+    if os.getppid() != parent_pid:  # the parent died before the watch was set up
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _die_with_parent() -> bool:
+    """Ask Linux to SIGKILL this process when its parent ends; False where unavailable."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _watch_parent(parent_pid: int) -> None:
+    import time
+
+    while os.getppid() == parent_pid:
+        time.sleep(_PARENT_POLL_S)
+    os.kill(os.getpid(), signal.SIGKILL)
