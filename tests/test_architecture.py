@@ -176,7 +176,12 @@ def test_importing_the_cli_loads_no_heavy_module():
     assert json.loads(result.stdout) == []
 
 
-BASE_MODULES = ["endomeasure.errors", "endomeasure.defaults", "endomeasure.interrupts", "endomeasure"]
+BASE_MODULES = [
+    "endomeasure.errors",
+    "endomeasure.defaults",
+    "endomeasure.interrupts",
+    "endomeasure",
+]
 
 
 @pytest.mark.parametrize("module", BASE_MODULES)

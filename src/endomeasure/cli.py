@@ -1088,9 +1088,7 @@ def export(
 @command("repair")
 def repair(
     session: Annotated[Path, typer.Argument(help="Damaged session file.", show_default=False)],
-    out: Annotated[
-        Path, typer.Option("-o", "--out", help="New session file for what is intact.")
-    ],
+    out: Annotated[Path, typer.Option("-o", "--out", help="New session file for what is intact.")],
     wait_s: WaitOption = defaults.LOCK_WAIT_S,
     json_output: JsonOption = False,
 ) -> None:
