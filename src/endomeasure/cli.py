@@ -709,7 +709,12 @@ def add_images(
     json_output: JsonOption = False,
 ) -> None:
     """Embed image files, or frames picked from videos, in a session (compressed, with
-    their path, SHA-256 and frame number)."""
+    their path, SHA-256 and frame number).
+
+    A file that cannot be used (unreadable, not an image, another size, a name clash) is
+    listed and left out, the others are stored: exit code 1. Exit code 2 when no file is
+    usable (nothing stored, no session created) or a video cannot be used.
+    """
     from endomeasure.pipeline.images import add_images as run
 
     split_column = parse_split(split)
@@ -724,14 +729,24 @@ def add_images(
             frame_step=frame_step,
             split=split_column,
         )
+    from endomeasure.errors import GoalNotMetError
+
+    failure = None
+    if report.failed:
+        failure = GoalNotMetError(report.failure, hint="the other images were stored")
     if json_output:
-        _print_json(report.to_dict())
-        return
-    _print_videos(console, report.videos)
-    console.print(
-        f"{report.session}: added {len(report.added)} {report.image_set} image(s)"
-        + (f", {len(report.unchanged)} already present" if report.unchanged else "")
-    )
+        error = "" if failure is None else _error_text(failure)
+        _print_json(_with_error(report.to_dict(), error, report.exit_code))
+    else:
+        _print_videos(console, report.videos)
+        for item in report.failed:
+            console.print(f"not added: {item.path}: {item.error}", markup=False)
+        console.print(
+            f"{report.session}: added {len(report.added)} {report.image_set} image(s)"
+            + (f", {len(report.unchanged)} already present" if report.unchanged else "")
+        )
+    if failure is not None:
+        raise failure
 
 
 @command("detect")

@@ -255,9 +255,11 @@ class SessionLock:
         )
 
     def _timed_out(self, timeout: float | None) -> SessionLockedError:
-        waited = "" if not timeout else f" after waiting {timeout:g} s"
+        holder = read_holder(self.path)
+        who = "" if holder is None else f" ({holder.describe()})"
+        waited = "" if not timeout else f"; waited {timeout:g} s"
         return SessionLockedError(
-            f"the session is locked by {self._holder_text()}{waited}",
+            f"the session is locked by another endomeasure command{who}{waited}",
             path=str(self.session_path),
             hint="retry when that command has finished, or wait longer with --wait SECONDS",
         )
