@@ -8,11 +8,13 @@ Exception`` swallows it). Only the first signal raises: later ones are ignored, 
 the clean-up the first one started (temp files removed, worker processes ended) runs to
 its end and the user sees one line. Every signal is remembered (:func:`received`): an
 interrupt that a library turned into an ordinary error, or swallowed, is still reported
-as the interrupt it was.
+as the interrupt it was; one that Python itself had to drop (raised in a destructor or
+a weakref callback, where it would print "Exception ignored") is raised again a moment
+later.
 
-:func:`deferred` holds both signals back (``pthread_sigmask``) around a step that must
-not be cut (the rename that replaces a session); :func:`worker_initializer` makes a pool
-worker ignore both (its parent reports) and die when its parent dies, even by SIGKILL.
+:func:`deferred` holds both signals back around a step that must not be cut (the
+rename that replaces a session); :func:`worker_initializer` makes a pool worker ignore
+both (its parent reports) and die when its parent dies, even by SIGKILL.
 
 Standard library only; nothing here prints or exits the process.
 """
@@ -61,18 +63,50 @@ class Interrupted(KeyboardInterrupt):
         return 128 + self.signum
 
 
+_RERAISE_AFTER_S = 0.002
+"""Delay before an interrupt that was swallowed is raised again (after the code that
+swallowed it has returned)."""
+
+
 class _State:
     received: int | None = None  # the first signal, once one came
+    deferring = 0  # depth of deferred() blocks
+    pending = False  # a signal came inside deferred(): raise when it ends
+    reraise = False  # the last raise was swallowed (a destructor, a callback): raise again
 
 
 _STATE = _State()
 
 
 def _raise_first(signum: int, frame: object) -> None:
-    if _STATE.received is not None:
+    if _STATE.received is not None and not _STATE.reraise:
         return  # the first one is being handled; let its clean-up finish
-    _STATE.received = signum
-    raise Interrupted(signum)
+    if _STATE.received is None:
+        _STATE.received = signum
+    _STATE.reraise = False
+    if _STATE.deferring:
+        _STATE.pending = True
+        return
+    raise Interrupted(_STATE.received)
+
+
+def _unraisable(hook_args) -> None:
+    """``sys.unraisablehook``: an interrupt raised where Python cannot propagate it (a
+    ``__del__``, a weakref callback, the garbage collector) is raised again a moment
+    later, in the code that runs then, instead of being printed and lost."""
+    if isinstance(hook_args.exc_value, KeyboardInterrupt) and _STATE.received is not None:
+        _STATE.reraise = True
+        threading.Timer(_RERAISE_AFTER_S, _trip_again).start()
+        return
+    _PREVIOUS_UNRAISABLEHOOK(hook_args)
+
+
+_PREVIOUS_UNRAISABLEHOOK = sys.unraisablehook
+
+
+def _trip_again() -> None:
+    if _STATE.reraise and _STATE.received is not None:
+        os.kill(os.getpid(), _STATE.received)  # its handler runs in the main thread
 
 
 def _remember(signum: int, frame: object) -> None:
@@ -97,7 +131,12 @@ def install() -> None:
     for signum in HANDLED:
         if signal.getsignal(signum) is not signal.SIG_IGN:
             signal.signal(signum, _remember)
-    _STATE.received = None
+    sys.unraisablehook = _unraisable
+    _reset()
+
+
+def _reset() -> None:
+    _STATE.received, _STATE.deferring, _STATE.pending, _STATE.reraise = None, 0, False, False
 
 
 def _set_mode(handler) -> None:
@@ -141,13 +180,15 @@ def handling() -> Iterator[None]:
         yield
         return
     saved = {signum: signal.getsignal(signum) for signum in HANDLED}
+    saved_hook = sys.unraisablehook
     install()
     try:
         yield
     finally:
         for signum, handler in saved.items():
             signal.signal(signum, handler)
-        _STATE.received = None
+        sys.unraisablehook = saved_hook
+        _reset()
 
 
 @contextlib.contextmanager
@@ -169,24 +210,23 @@ def blocked() -> Iterator[None]:
 def deferred() -> Iterator[None]:
     """Hold SIGINT and SIGTERM back for a step that must not be cut short (replacing a
     session): an interrupt that came before, also one a library swallowed, is raised
-    instead of starting the step; one that comes during it raises right after it."""
+    instead of starting the step; one that comes during it raises right after it.
+
+    The signal is held back in its handler, not by a signal mask: the handler runs in
+    the main thread whichever thread the kernel chose (OpenCV's or the pool's threads do
+    not block signals).
+    """
     came = received()
     if came is not None:
         raise came
-    if not _can_block():
-        yield
-        return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, HANDLED)
-    if signal.sigpending() & set(HANDLED):
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)  # delivered now: its handler raises
-        came = received()
-        if came is not None:
-            raise came
-        old = signal.pthread_sigmask(signal.SIG_BLOCK, HANDLED)
+    _STATE.deferring += 1
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        _STATE.deferring -= 1
+        if not _STATE.deferring and _STATE.pending:
+            _STATE.pending = False
+            raise Interrupted(_STATE.received)
 
 
 def worker_initializer(parent_pid: int) -> None:
@@ -202,7 +242,8 @@ def worker_initializer(parent_pid: int) -> None:
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    _STATE.received = None
+    sys.unraisablehook = _PREVIOUS_UNRAISABLEHOOK
+    _reset()
     if hasattr(signal, "pthread_sigmask"):  # the parent forked it with both blocked
         signal.pthread_sigmask(signal.SIG_UNBLOCK, HANDLED)
     if not _die_with_parent():
