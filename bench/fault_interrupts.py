@@ -211,6 +211,7 @@ def trial(work: Path, base: Path, argv: list[str], is_new, signum: int, delay: f
         "temps": sorted(p.name for p in folder.iterdir() if p.name.endswith(TMP_SUFFIX)),
         "orphans": orphans,
         "stderr_tail": err[-1500:],
+        "stdout_tail": out[-500:],
     }
     row["outcome"] = outcome(row, signum, finished_code)
     row["ok"] = not row["outcome"].startswith("broke")
@@ -224,6 +225,8 @@ def outcome(row: dict, signum: int, finished_code: int) -> str:
     problems = []
     if row["traceback"]:
         problems.append("traceback")
+    if row["stdout_tail"]:
+        problems.append("output on stdout")
     if row["temps"]:
         problems.append("temporary file left")
     if row["orphans"]:

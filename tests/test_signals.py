@@ -192,7 +192,7 @@ def check_interrupted(proc, signum, session: Path, before: str | None, is_new) -
     name = signal.Signals(signum).name
     assert lines[0].startswith(f"error: interrupted by {name}"), err
     assert "Traceback" not in err and "bug" not in err
-    assert out == ""
+    assert out == "", out
     assert _wait_group_gone(proc.pid) == []
     assert _temp_files(session) == []
     if _sha(session) == before:

@@ -466,10 +466,20 @@ FrameStepOption = Annotated[
 
 
 def main() -> None:
-    """Console-script entry point."""
+    """Console-script entry point.
+
+    An interrupted command ends at once after its line: the interpreter's own exit
+    would wait for library threads (a process pool's) that an interrupt can leave stuck;
+    everything that matters (the session, temp files, worker processes) is settled by
+    then.
+    """
     try:
         app(prog_name="endomeasure")
-    except SystemExit:
+    except SystemExit as exc:
+        if interrupts.received() is not None and exc.code in (128 + s for s in interrupts.HANDLED):
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(exc.code)
         raise
     except KeyboardInterrupt as exc:
         interrupts.disarm()

@@ -317,6 +317,7 @@ def _end_pool(pool) -> None:
     """
     processes = list((getattr(pool, "_processes", None) or {}).values())
     manager = getattr(pool, "_executor_manager_thread", None)
+    call_queue = getattr(pool, "_call_queue", None)
     pool.shutdown(wait=False, cancel_futures=True)
     for process in processes:
         with contextlib.suppress(OSError, ValueError):  # already gone
@@ -324,6 +325,10 @@ def _end_pool(pool) -> None:
     for process in processes:
         with contextlib.suppress(OSError, ValueError, AssertionError):
             process.join(_WORKER_JOIN_S)
+    # The queue's feeder thread may be stuck writing a task (an image) that no worker
+    # will read: without a reader its write fails and the pool's threads can end.
+    with contextlib.suppress(AttributeError, OSError):
+        call_queue._reader.close()
     if manager is not None:
         manager.join(_WORKER_JOIN_S)  # its clean-up done while stderr is still captured
 
