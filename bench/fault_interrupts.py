@@ -263,6 +263,9 @@ def main(argv=None) -> int:
         print("bench/fault_interrupts.py: skipped, needs /proc", file=sys.stderr)
         return 0
     report = Report("bench/fault_interrupts.py", args, ROBUSTNESS)
+    # started in the background by a shell (`make ... &`, nohup), this process and its
+    # children would ignore SIGINT, as POSIX asks: the commands must see it as at a terminal
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     work = args.work or Path(tempfile.mkdtemp(prefix="interrupts-"))
     work.mkdir(parents=True, exist_ok=True)
     commands = prepare(work / "bases")

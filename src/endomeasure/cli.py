@@ -10,7 +10,11 @@ pass the callback of :func:`_progress` to the pipeline function). No maths here.
 The ``@command()`` wrapper is the error boundary: an
 :class:`~endomeasure.errors.EndomeasureError` becomes one line ``error: ...`` on stderr
 and its exit code (0 success, 1 ran but failed its goal, 2 bad usage or bad input); any
-other exception is reported as a bug in one line; ``--debug`` adds the traceback.
+other exception is reported as a bug in one line; ``--debug`` adds the traceback. Ctrl-C
+and SIGTERM (:mod:`endomeasure.interrupts`) give exit 130 / 143 and one line, also when a
+library turned the interrupt into another error. Every command that can edit a session
+takes ``--wait SECONDS``, the longest wait for another command's lock; the wrapper makes
+every lock of the command obey it and print a ``note:`` line when it has to wait.
 
 The output contract
 -------------------
@@ -132,7 +136,8 @@ app = typer.Typer(
     name="endomeasure",
     help=(
         "3D measurement with prism-based stereo video endoscopes.\n\n"
-        "Exit codes: 0 success, 1 ran but failed its goal, 2 bad usage or bad input."
+        "Exit codes: 0 success, 1 ran but failed its goal, 2 bad usage or bad input, "
+        "130 interrupted (Ctrl-C), 143 terminated (SIGTERM)."
     ),
     context_settings={"help_option_names": ["-h", "--help"]},
     no_args_is_help=True,
