@@ -481,17 +481,19 @@ def main() -> None:
     try:
         app(prog_name="endomeasure")
     except SystemExit as exc:
+        interrupts.settle()
         if interrupts.received() is not None and exc.code in (128 + s for s in interrupts.HANDLED):
             sys.stdout.flush()
             sys.stderr.flush()
             os._exit(exc.code)
         raise
     except KeyboardInterrupt as exc:
-        interrupts.disarm()
+        interrupts.settle()
         line, code = _interrupt_line(exc)
         sys.stderr.write(f"error: {line}\n")
         sys.exit(code)
     except BaseException as exc:  # escaped the command boundary, e.g. in an option callback
+        interrupts.settle()
         if "--debug" in sys.argv:
             raise
         line = _compose(

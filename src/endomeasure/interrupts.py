@@ -38,6 +38,7 @@ __all__ = [
     "handling",
     "install",
     "received",
+    "settle",
     "worker_initializer",
 ]
 
@@ -160,6 +161,18 @@ def disarm() -> None:
     """From now on a signal is only remembered: the command's outcome is decided (its
     line written, or its work done), and the process ends with that outcome."""
     _set_mode(_remember)
+
+
+def settle() -> None:
+    """The process ends now, with its outcome decided: both signals are ignored from
+    here on. (Python's own shutdown sets handlers written in Python back to the
+    default, so a signal in its last milliseconds would kill the process without its
+    line or its exit code; an ignored signal it leaves ignored.)"""
+    if not _in_main_thread():
+        return
+    for signum in HANDLED:
+        if signal.getsignal(signum) in (_raise_first, _remember):
+            signal.signal(signum, signal.SIG_IGN)
 
 
 def received() -> Interrupted | None:
