@@ -26,6 +26,7 @@ from pathlib import Path
 
 import pytest
 
+from endomeasure import interrupts
 from endomeasure.io.outputs import SESSION_TMP_SUFFIX
 from endomeasure.io.session import open_session
 
@@ -204,6 +205,69 @@ def check_interrupted(proc, signum, session: Path, before: str | None, is_new) -
 def _image_names(session: Path) -> set[str]:
     with open_session(session) as s:
         return set(s.image_names())
+
+
+# ------------------------------------------------------------ the interrupts module
+
+
+def _raise_soon(signum=signal.SIGINT) -> None:
+    os.kill(os.getpid(), signum)
+    time.sleep(0.5)  # the handler runs here (the sleep is cut short)
+
+
+def test_deferred_holds_the_signal_back_until_the_step_is_done():
+    steps = []
+    with interrupts.handling():
+        interrupts.arm()
+        with pytest.raises(interrupts.Interrupted) as caught:
+            with interrupts.deferred():
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)
+                steps.append("done")
+    assert steps == ["done"]
+    assert caught.value.exit_code == 143
+
+
+def test_an_interrupt_that_code_swallowed_stops_the_next_write():
+    with interrupts.handling():
+        interrupts.arm()
+        try:
+            _raise_soon()
+        except BaseException:  # what a careless library does
+            pass
+        with pytest.raises(interrupts.Interrupted):
+            with interrupts.deferred():
+                pytest.fail("the write went ahead after an interrupt")
+        assert interrupts.received().exit_code == 130
+
+
+class _RaisesInItsDestructor:
+    def __del__(self):
+        _raise_soon()  # Python drops it: "Exception ignored in ..."
+
+
+def test_an_interrupt_python_had_to_drop_is_raised_again():
+    with interrupts.handling():
+        interrupts.arm()
+        with pytest.raises(interrupts.Interrupted):
+            item = _RaisesInItsDestructor()
+            del item
+            time.sleep(2.0)  # raised again within milliseconds
+            pytest.fail("the interrupt was lost in the destructor")
+
+
+def test_only_the_first_signal_raises_and_a_decided_outcome_ignores_them():
+    with interrupts.handling():
+        interrupts.arm()
+        with pytest.raises(interrupts.Interrupted) as first:
+            _raise_soon(signal.SIGINT)
+        _raise_soon(signal.SIGTERM)  # ignored: the first one's clean-up runs
+        assert first.value.signum == signal.SIGINT
+    with interrupts.handling():
+        interrupts.arm()
+        interrupts.disarm()
+        _raise_soon(signal.SIGINT)  # only remembered
+        assert interrupts.received().signum == signal.SIGINT
 
 
 # ------------------------------------------------------------------------- add-images
