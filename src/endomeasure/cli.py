@@ -316,6 +316,8 @@ def _error_boundary(json_output: bool = False):
         if came is not None:  # swallowed on the way (the work may be stored or not)
             raise came
     except typer.Exit as exc:
+        interrupts.disarm()
+        _STATE.outcome = True
         if exc.exit_code != 0 and interrupts.received() is not None:
             _fail("", 0, exc)
         raise
