@@ -311,6 +311,12 @@ def main(argv=None) -> int:
     starts = sorted(r["handlers_after_s"] for r in rows if r["handlers_after_s"] is not None)
     startup = f"median {1000 * starts[len(starts) // 2]:.0f} ms" if starts else "-"
     moved = sum(r["moved_to_handlers"] for r in rows)
+    waits = sorted(r["after_signal_s"] for r in rows if r["outcome"].startswith("interrupted"))
+    latency = (
+        f"a median {1000 * waits[len(waits) // 2]:.0f} ms and at most {waits[-1]:.2f} s"
+        if waits
+        else "-"
+    )
     command_line = (
         f"python bench/fault_interrupts.py --trials {args.trials} --sigterm {args.sigterm} "
         f"--seed {args.seed}"
@@ -324,6 +330,7 @@ is moved to the moment it has: {moved} of {len(rows)} trials.
 {chr(10).join(table)}
 
 The line of every interrupted trial: `{_common_line(rows)}`.
+An interrupted command ended {latency} after the signal.
 Trials that broke the contract (another exit code, not exactly one line, a traceback, a
 session neither old nor new, a temporary file or a worker process left, an interrupt
 swallowed): **{len(broken)}** (target 0, issue 18) - {check}.{listed}

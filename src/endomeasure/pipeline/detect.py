@@ -304,8 +304,11 @@ class _Runner:
         return results
 
 
-_WORKER_JOIN_S = 5.0
+_WORKER_JOIN_S = 2.0
 """How long to wait for a killed worker to be reaped (it dies at once; this bounds a hang)."""
+_MANAGER_JOIN_S = 1.0
+"""How long to let the pool's own thread finish its clean-up (ms normally; a thread still
+stuck after that is ended with the process)."""
 
 
 def _end_pool(pool) -> None:
@@ -320,7 +323,7 @@ def _end_pool(pool) -> None:
     call_queue = getattr(pool, "_call_queue", None)
     pool.shutdown(wait=False, cancel_futures=True)
     for process in processes:
-        with contextlib.suppress(OSError, ValueError):  # already gone
+        with contextlib.suppress(OSError, ValueError, AttributeError):  # gone, or never started
             process.kill()
     for process in processes:
         with contextlib.suppress(OSError, ValueError, AssertionError):
@@ -330,7 +333,7 @@ def _end_pool(pool) -> None:
     with contextlib.suppress(AttributeError, OSError):
         call_queue._reader.close()
     if manager is not None:
-        manager.join(_WORKER_JOIN_S)  # its clean-up done while stderr is still captured
+        manager.join(_MANAGER_JOIN_S)  # its clean-up done while stderr is still captured
 
 
 # ----------------------------------------------------------------------- the command
