@@ -97,7 +97,9 @@ def _unraisable(hook_args) -> None:
     later, in the code that runs then, instead of being printed and lost."""
     if isinstance(hook_args.exc_value, KeyboardInterrupt) and _STATE.received is not None:
         _STATE.reraise = True
-        threading.Timer(_RERAISE_AFTER_S, _trip_again).start()
+        timer = threading.Timer(_RERAISE_AFTER_S, _trip_again)
+        timer.daemon = True
+        timer.start()
         return
     _PREVIOUS_UNRAISABLEHOOK(hook_args)
 
