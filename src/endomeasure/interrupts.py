@@ -96,7 +96,8 @@ def _unraisable(hook_args) -> None:
     ``__del__``, a weakref callback, the garbage collector) is raised again a moment
     later, in the code that runs then, instead of being printed and lost."""
     if isinstance(hook_args.exc_value, KeyboardInterrupt) and _STATE.received is not None:
-        _STATE.reraise = True
+        # the flag is set by the timer, not here: starting a thread waits on a lock, and
+        # a raise inside this hook would be dropped (and printed) in its turn
         timer = threading.Timer(_RERAISE_AFTER_S, _trip_again)
         timer.daemon = True
         timer.start()
@@ -108,7 +109,8 @@ _PREVIOUS_UNRAISABLEHOOK = sys.unraisablehook
 
 
 def _trip_again() -> None:
-    if _STATE.reraise and _STATE.received is not None:
+    if _STATE.received is not None:
+        _STATE.reraise = True
         os.kill(os.getpid(), _STATE.received)  # its handler runs in the main thread
 
 
