@@ -30,6 +30,7 @@ LAYERS = {
     "conventions": 0,
     "errors": 0,
     "defaults": 0,
+    "interrupts": 0,
     "geometry": 1,
     "interpolation": 1,
     "models": 2,
@@ -42,7 +43,8 @@ LAYERS = {
     "cli": 5,
     "__main__": 6,
 }
-BASE = {"", "conventions", "errors", "defaults"}  # "" is the package root (__version__)
+BASE = {"", "conventions", "errors", "defaults", "interrupts"}
+"""Importable from anywhere ("" is the package root: ``__version__``)."""
 
 PEER_IMPORTS_ALLOWED = {
     ("measure", "solvers"): "measurements triangulate their points with solvers.triangulate",
@@ -158,7 +160,8 @@ def test_cli_imports_pipeline_code_only_inside_commands():
         for target, _, at_top in imports(path, "endomeasure.cli")
         if at_top and target.startswith("endomeasure")
     )
-    assert set(top) <= {"endomeasure", "endomeasure.errors", "endomeasure.defaults"}, top
+    base = {"endomeasure", "endomeasure.errors", "endomeasure.defaults", "endomeasure.interrupts"}
+    assert set(top) <= base, top
 
 
 def test_importing_the_cli_loads_no_heavy_module():
@@ -173,7 +176,15 @@ def test_importing_the_cli_loads_no_heavy_module():
     assert json.loads(result.stdout) == []
 
 
-@pytest.mark.parametrize("module", ["endomeasure.errors", "endomeasure.defaults", "endomeasure"])
+BASE_MODULES = [
+    "endomeasure.errors",
+    "endomeasure.defaults",
+    "endomeasure.interrupts",
+    "endomeasure",
+]
+
+
+@pytest.mark.parametrize("module", BASE_MODULES)
 def test_base_modules_need_only_the_standard_library(module):
     code = (
         "import json, sys; before = set(sys.modules); "

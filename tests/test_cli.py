@@ -148,6 +148,44 @@ def test_add_images_refuses_a_second_image_size_in_one_line(tmp_path, rng):
     assert "32x20 px but the session's images are 32x24 px" in result.stderr
 
 
+def test_add_images_keeps_the_usable_files_and_lists_the_others(tmp_path, rng):
+    write_pngs(tmp_path / "in", ["a", "b"], (24, 32), rng)
+    write_pngs(tmp_path / "in", ["wide"], (24, 40), rng)  # another size than the first
+    (tmp_path / "in" / "junk.png").write_bytes(b"not a png")
+    session = tmp_path / "s.h5"
+    result = runner.invoke(cli.app, ["add-images", str(session), str(tmp_path / "in"), "--json"])
+    assert result.exit_code == 1, result.stderr
+    doc = json.loads(result.stdout)
+    assert doc["added"] == ["a", "b"] and doc["exit_code"] == 1
+    failed = {item["path"].rsplit("/", 1)[-1]: item["error"] for item in doc["failed"]}
+    assert set(failed) == {"junk.png", "wide.png"}
+    assert "cannot decode" in failed["junk.png"] and "40x24" in failed["wide.png"]
+    lines = result.stderr.splitlines()
+    assert lines == [f"error: {doc['error']}"]
+    assert lines[0].startswith("error: 2 image file(s) could not be used:")
+    assert lines[0].endswith("the other images were stored")
+    with open_session(session) as s:
+        assert s.image_names() == ["a", "b"]
+    plain = runner.invoke(cli.app, ["add-images", str(session), str(tmp_path / "in")])
+    assert plain.exit_code == 1
+    assert sum(line.startswith("not added: ") for line in plain.stderr.splitlines()) == 2
+    assert plain.stderr.splitlines()[-1].startswith("error: 2 image file(s)")
+
+
+def test_add_images_with_no_usable_file_creates_no_session(tmp_path, rng):
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "junk.png").write_bytes(b"not a png")
+    (tmp_path / "in" / "empty.png").write_bytes(b"")
+    session = tmp_path / "s.h5"
+    result = runner.invoke(cli.app, ["add-images", str(session), str(tmp_path / "in")])
+    assert result.exit_code == 2
+    assert result.stderr.splitlines() == [
+        "error: none of the 2 image files could be used: cannot decode the image file (2); "
+        "nothing was stored"
+    ]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]
+
+
 def test_two_add_images_commands_at_once_keep_both(tmp_path, rng):
     write_pngs(tmp_path / "a", [f"a{i}" for i in range(4)], (24, 32), rng)
     write_pngs(tmp_path / "b", [f"b{i}" for i in range(4)], (24, 32), rng)

@@ -1,5 +1,9 @@
 """``python -m endomeasure``: the same as the ``endomeasure`` command."""
 
-from endomeasure.cli import main
+from endomeasure import interrupts
+
+interrupts.install()  # before the command line loads: a Ctrl-C meanwhile is remembered
+
+from endomeasure.cli import main  # noqa: E402
 
 main()

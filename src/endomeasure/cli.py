@@ -10,7 +10,11 @@ pass the callback of :func:`_progress` to the pipeline function). No maths here.
 The ``@command()`` wrapper is the error boundary: an
 :class:`~endomeasure.errors.EndomeasureError` becomes one line ``error: ...`` on stderr
 and its exit code (0 success, 1 ran but failed its goal, 2 bad usage or bad input); any
-other exception is reported as a bug in one line; ``--debug`` adds the traceback.
+other exception is reported as a bug in one line; ``--debug`` adds the traceback. Ctrl-C
+and SIGTERM (:mod:`endomeasure.interrupts`) give exit 130 / 143 and one line, also when a
+library turned the interrupt into another error. Every command that can edit a session
+takes ``--wait SECONDS``, the longest wait for another command's lock; the wrapper makes
+every lock of the command obey it and print a ``note:`` line when it has to wait.
 
 The output contract
 -------------------
@@ -43,11 +47,16 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
-import typer
-from typer.core import TyperGroup
+from endomeasure import interrupts
 
-from endomeasure import __version__, defaults
-from endomeasure.errors import EndomeasureError
+if os.path.basename(sys.argv[0]) == "endomeasure":  # the console script, before typer loads:
+    interrupts.install()  # a Ctrl-C while it starts is remembered, never a traceback
+
+import typer  # noqa: E402
+from typer.core import TyperGroup  # noqa: E402
+
+from endomeasure import __version__, defaults  # noqa: E402
+from endomeasure.errors import EndomeasureError  # noqa: E402
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -71,24 +80,55 @@ class _Group(TyperGroup):
         if not standalone_mode:
             return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
         argv = list(sys.argv[1:] if args is None else args)
-        try:
-            result = super().main(argv, prog_name, complete_var, standalone_mode=False, **extra)
-        except typer.TyperException as exc:  # click's UsageError, BadParameter, FileError ...
-            if type(exc).__name__ == "NoArgsIsHelpError":  # bare `endomeasure`: the help,
-                help_text = exc.format_message()  # which rich has already printed
-                if help_text.strip():
-                    sys.stdout.write(help_text + "\n")
+        with interrupts.handling():
+            _STATE.outcome = False
+            try:
+                result = super().main(argv, prog_name, complete_var, standalone_mode=False,
+                                      **extra)  # fmt: skip
+            except typer.TyperException as exc:  # click's UsageError, BadParameter, ...
+                _exit_if_interrupted()
+                if type(exc).__name__ == "NoArgsIsHelpError":  # bare `endomeasure`: the
+                    help_text = exc.format_message()  # help, which rich has already printed
+                    if help_text.strip():
+                        sys.stdout.write(help_text + "\n")
+                    sys.exit(EXIT_USAGE)
+                line = _usage_line(exc)
+                if "--json" in argv:
+                    _print_json({"error": line, "exit_code": EXIT_USAGE})
+                sys.stderr.write(f"error: {line}\n")
+                sys.stderr.flush()
                 sys.exit(EXIT_USAGE)
-            line = _usage_line(exc)
-            if "--json" in argv:
-                _print_json({"error": line, "exit_code": EXIT_USAGE})
-            sys.stderr.write(f"error: {line}\n")
-            sys.stderr.flush()
-            sys.exit(EXIT_USAGE)
-        except typer.Abort:
-            sys.stderr.write("error: interrupted\n")
-            sys.exit(EXIT_INTERRUPTED)
-        sys.exit(result if isinstance(result, int) else 0)
+            except (typer.Abort, KeyboardInterrupt) as exc:  # escaped every boundary
+                interrupts.disarm()
+                came = interrupts.received()
+                _exit_interrupted(came if came is not None else exc)
+            if not _STATE.outcome:  # no command ran (--help, --version): was it cut short?
+                _exit_if_interrupted()
+            sys.exit(result if isinstance(result, int) else 0)
+
+
+def _interrupt_line(exc: BaseException) -> tuple[str, int]:
+    """The one line and the exit code of an interrupt: 130 for SIGINT, 143 for SIGTERM."""
+    code = getattr(exc, "exit_code", EXIT_INTERRUPTED)
+    name = getattr(exc, "signal_name", "SIGINT")
+    what = f"interrupted by {name}" + (" (Ctrl-C)" if name == "SIGINT" else "")
+    return _compose(what, INTERRUPT_HINT), code
+
+
+def _exit_interrupted(exc: BaseException) -> None:
+    line, code = _interrupt_line(exc)
+    if _STATE.json_output and not _STATE.json_printed:
+        _print_json({"error": line, "exit_code": code})
+    sys.stderr.write(f"error: {line}\n")
+    sys.stderr.flush()
+    sys.exit(code)
+
+
+def _exit_if_interrupted() -> None:
+    interrupts.disarm()
+    came = interrupts.received()
+    if came is not None:
+        _exit_interrupted(came)
 
 
 app = typer.Typer(
@@ -96,7 +136,8 @@ app = typer.Typer(
     name="endomeasure",
     help=(
         "3D measurement with prism-based stereo video endoscopes.\n\n"
-        "Exit codes: 0 success, 1 ran but failed its goal, 2 bad usage or bad input."
+        "Exit codes: 0 success, 1 ran but failed its goal, 2 bad usage or bad input, "
+        "130 interrupted (Ctrl-C), 143 terminated (SIGTERM)."
     ),
     context_settings={"help_option_names": ["-h", "--help"]},
     no_args_is_help=True,
@@ -107,13 +148,18 @@ app = typer.Typer(
 EXIT_BUG = 2
 """An unexpected exception is a bug; the job could not be done, as with bad input."""
 EXIT_INTERRUPTED = 130
+"""128 + SIGINT; SIGTERM gives 128 + 15 = 143 (``Interrupted.exit_code``)."""
 EXIT_USAGE = 2
+INTERRUPT_HINT = (
+    "a session holds all of this command's changes or none of them; run it again to finish"
+)
 
 
 class _State:
     debug = False
     json_output = False  # the running command was asked for --json
     json_printed = False  # and has written its document
+    outcome = False  # a command's boundary has decided how the process ends
 
 
 _STATE = _State()
@@ -170,6 +216,15 @@ def _compose(
 
 
 def _fail(message: str, code: int, exc: BaseException) -> None:
+    """The command's one error line, its exit code; an interrupt received on the way
+    (also one a library turned into another error) is reported as the interrupt."""
+    interrupts.disarm()
+    _STATE.outcome = True
+    came = interrupts.received()
+    if came is not None and not isinstance(exc, KeyboardInterrupt):
+        exc = came
+    if isinstance(exc, KeyboardInterrupt):
+        message, code = _interrupt_line(exc)
     if _STATE.debug:
         traceback.print_exception(exc, file=sys.stderr)
     if _STATE.json_output and not _STATE.json_printed:
@@ -220,17 +275,30 @@ def _quiet_libraries():
                 closefd=False,
             )
         os.dup2(scratch.fileno(), 2)
+        undone: list = []  # the restore steps done, so that it can run twice
+
+        def restore() -> None:
+            if "fd2" not in undone:
+                with contextlib.suppress(Exception):
+                    sys.stderr.flush()
+                os.dup2(real_fd, 2)
+                undone.append("fd2")
+            if uses_fd2 and sys.stderr is not python_stderr:
+                sys.stderr.close()
+                sys.stderr = python_stderr
+            if "real" not in undone:
+                os.close(real_fd)
+                undone.append("real")
+            scratch.close()
+
         try:
             yield
         finally:
-            with contextlib.suppress(Exception):
-                sys.stderr.flush()
-            os.dup2(real_fd, 2)
-            if uses_fd2:
-                sys.stderr.close()
-                sys.stderr = python_stderr
-            os.close(real_fd)
-            scratch.close()
+            try:
+                restore()
+            except KeyboardInterrupt:  # the first signal cut it short; no second one raises
+                restore()
+                raise
 
 
 @contextlib.contextmanager
@@ -240,13 +308,23 @@ def _error_boundary(json_output: bool = False):
     _STATE.json_output, _STATE.json_printed = bool(json_output), False
     try:
         with _quiet_libraries():
+            interrupts.arm()  # raises one that came while the process started
             yield
-    except typer.Exit:
+        interrupts.disarm()
+        _STATE.outcome = True
+        came = interrupts.received()
+        if came is not None:  # swallowed on the way (the work may be stored or not)
+            raise came
+    except typer.Exit as exc:
+        interrupts.disarm()
+        _STATE.outcome = True
+        if exc.exit_code != 0 and interrupts.received() is not None:
+            _fail("", 0, exc)
         raise
     except EndomeasureError as exc:
         _fail(_error_text(exc), exc.exit_code, exc)
     except KeyboardInterrupt as exc:
-        _fail("interrupted; session files are left as they were", EXIT_INTERRUPTED, exc)
+        _fail("", EXIT_INTERRUPTED, exc)
     except MemoryError as exc:
         _fail(
             _compose("not enough memory for this command", "give smaller inputs or options"),
@@ -271,13 +349,34 @@ def command(name: str | None = None, **kwargs: Any):
     def decorate(function):
         @functools.wraps(function)
         def wrapper(*args, **kw):
-            with _error_boundary(json_output=kw.get("json_output", False)):
-                return function(*args, **kw)
+            wait_s = kw.pop("wait_s", defaults.LOCK_WAIT_S)
+            try:
+                with _error_boundary(json_output=kw.get("json_output", False)):
+                    with _lock_waiting(wait_s):
+                        return function(*args, **kw)
+            except KeyboardInterrupt as exc:  # the first signal came while the boundary
+                _fail("", EXIT_INTERRUPTED, exc)  # handled another error: it wins
 
         app.command(name, **kwargs)(wrapper)
         return function
 
     return decorate
+
+
+@contextlib.contextmanager
+def _lock_waiting(wait_s: float):
+    """Every session lock of the command waits at most ``wait_s`` (``--wait``) and says,
+    once, on stderr when it has to wait for another command."""
+    if not wait_s >= 0:
+        raise _bad_input(f"--wait must be 0 or more seconds, not {wait_s}")
+    from endomeasure.io._lock import LockWaiting, lock_waiting
+
+    def on_wait(message: str) -> None:
+        sys.stderr.write(f"note: {_one_line(message)}\n")
+        sys.stderr.flush()
+
+    with lock_waiting(LockWaiting(timeout_s=wait_s, on_wait=on_wait)):
+        yield
 
 
 def _stderr_console() -> Console:
@@ -353,6 +452,14 @@ SigmaOption = Annotated[
 JsonOption = Annotated[
     bool, typer.Option("--json", help="Print one JSON document on stdout instead of tables.")
 ]
+WaitOption = Annotated[
+    float,
+    typer.Option(
+        "--wait",
+        metavar="SECONDS",
+        help="Longest wait for another command's lock on the session, s (0: do not wait).",
+    ),
+]
 FrameStepOption = Annotated[
     int | None,
     typer.Option(
@@ -366,15 +473,29 @@ FrameStepOption = Annotated[
 
 
 def main() -> None:
-    """Console-script entry point."""
+    """Console-script entry point.
+
+    An interrupted command ends at once after its line: the interpreter's own exit
+    would wait for library threads (a process pool's) that an interrupt can leave stuck;
+    everything that matters (the session, temp files, worker processes) is settled by
+    then.
+    """
     try:
         app(prog_name="endomeasure")
-    except SystemExit:
+    except SystemExit as exc:
+        interrupts.settle()
+        if interrupts.received() is not None and exc.code in (128 + s for s in interrupts.HANDLED):
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(exc.code)
         raise
-    except KeyboardInterrupt:
-        sys.stderr.write("error: interrupted\n")
-        sys.exit(EXIT_INTERRUPTED)
+    except KeyboardInterrupt as exc:
+        interrupts.settle()
+        line, code = _interrupt_line(exc)
+        sys.stderr.write(f"error: {line}\n")
+        sys.exit(code)
     except BaseException as exc:  # escaped the command boundary, e.g. in an option callback
+        interrupts.settle()
         if "--debug" in sys.argv:
             raise
         line = _compose(
@@ -603,10 +724,16 @@ def add_images(
             "session's split, else found from the clip's prism band).",
         ),
     ] = "auto",
+    wait_s: WaitOption = defaults.LOCK_WAIT_S,
     json_output: JsonOption = False,
 ) -> None:
     """Embed image files, or frames picked from videos, in a session (compressed, with
-    their path, SHA-256 and frame number)."""
+    their path, SHA-256 and frame number).
+
+    A file that cannot be used (unreadable, not an image, another size, a name clash) is
+    listed and left out, the others are stored: exit code 1. Exit code 2 when no file is
+    usable (nothing stored, no session created) or a video cannot be used.
+    """
     from endomeasure.pipeline.images import add_images as run
 
     split_column = parse_split(split)
@@ -621,14 +748,24 @@ def add_images(
             frame_step=frame_step,
             split=split_column,
         )
+    from endomeasure.errors import GoalNotMetError
+
+    failure = None
+    if report.failed:
+        failure = GoalNotMetError(report.failure, hint="the other images were stored")
     if json_output:
-        _print_json(report.to_dict())
-        return
-    _print_videos(console, report.videos)
-    console.print(
-        f"{report.session}: added {len(report.added)} {report.image_set} image(s)"
-        + (f", {len(report.unchanged)} already present" if report.unchanged else "")
-    )
+        error = "" if failure is None else _error_text(failure)
+        _print_json(_with_error(report.to_dict(), error, report.exit_code))
+    else:
+        _print_videos(console, report.videos)
+        for item in report.failed:
+            console.print(f"not added: {item.path}: {item.error}", markup=False)
+        console.print(
+            f"{report.session}: added {len(report.added)} {report.image_set} image(s)"
+            + (f", {len(report.unchanged)} already present" if report.unchanged else "")
+        )
+    if failure is not None:
+        raise failure
 
 
 @command("detect")
@@ -667,6 +804,7 @@ def detect(
     ] = "auto",
     workers: Annotated[int, typer.Option("--workers", help="Processes to use.")] = 1,
     frame_step: FrameStepOption = None,
+    wait_s: WaitOption = defaults.LOCK_WAIT_S,
     json_output: JsonOption = False,
 ) -> None:
     """Find target corners in both halves of every image (and of the frames taken from
@@ -878,6 +1016,7 @@ def calibrate(
     plot: Annotated[
         Path | None, typer.Option("--plot", help="Folder for residual plots (PNG).")
     ] = None,
+    wait_s: WaitOption = defaults.LOCK_WAIT_S,
     json_output: JsonOption = False,
 ) -> None:
     """Fit camera models to the session's detections (both halves, one cost) and store them."""
@@ -983,9 +1122,8 @@ def export(
 @command("repair")
 def repair(
     session: Annotated[Path, typer.Argument(help="Damaged session file.", show_default=False)],
-    out: Annotated[
-        Path, typer.Option("-o", "--out", help="New session file for what is intact.")
-    ],
+    out: Annotated[Path, typer.Option("-o", "--out", help="New session file for what is intact.")],
+    wait_s: WaitOption = defaults.LOCK_WAIT_S,
     json_output: JsonOption = False,
 ) -> None:
     """Copy the intact items of a damaged session into a new session file.
@@ -1064,6 +1202,7 @@ def measure(
         int,
         typer.Option("--patch", help="Automatic matching: correlation patch side, px (odd)."),
     ] = defaults.PATCH_PX,
+    wait_s: WaitOption = defaults.LOCK_WAIT_S,
     json_output: JsonOption = False,
 ) -> None:
     """Triangulate points and measure them with a predicted +-, or run the board test.
@@ -1334,6 +1473,7 @@ def predict_error(
     ] = None,
     plot: Annotated[Path | None, typer.Option("--plot", help="PNG (board test or map).")] = None,
     csv: Annotated[Path | None, typer.Option("--csv", help="Map: data as CSV.")] = None,
+    wait_s: WaitOption = defaults.LOCK_WAIT_S,
     json_output: JsonOption = False,
 ) -> None:
     """Predict measurement errors (bias and std) by the unscented transform.

@@ -6,6 +6,7 @@ Standard library only, so that ``endomeasure --help`` stays fast.
 
 __all__ = [
     "ALL_MODELS",
+    "LOCK_WAIT_S",
     "MAX_IMAGE_PIXELS",
     "MAX_IMAGE_SIDE",
     "MAX_MAP_DEPTHS",
@@ -21,6 +22,10 @@ __all__ = [
     "WARN_PERCENT",
     "ZONE_MM",
 ]
+
+LOCK_WAIT_S = 120.0
+"""How long a command waits for another command's lock on a session (s; ``--wait``):
+edits hold it only while they write, so two minutes means a stuck peer."""
 
 WARN_PERCENT = 5.0
 """Accuracy-index threshold (percent): the +-5 % that commercial videoscopes quote for

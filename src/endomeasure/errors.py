@@ -54,6 +54,10 @@ class SessionVersionError(SessionError):
     """A session written by a newer, incompatible format version."""
 
 
+class SessionLockedError(SessionError):
+    """Another command held the session's lock for longer than this one would wait."""
+
+
 class GoalNotMetError(EndomeasureError):
     """The command ran on valid input but could not reach its goal (exit 1)."""
 

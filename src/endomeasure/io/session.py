@@ -79,7 +79,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from endomeasure import __version__
+from endomeasure import __version__, interrupts
 from endomeasure.conventions import Half
 from endomeasure.defaults import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE, MAX_STORED_ELEMENTS
 from endomeasure.errors import (
@@ -1448,7 +1448,8 @@ def edit_session(
             image = bytearray(buffer.getbuffer())
             buffer.close()
             seal_image(image)
-            _write_file(path, image, mode)
+            with interrupts.deferred():  # Ctrl-C: the old file or the new, no temp file
+                _write_file(path, image, mode)
         finally:
             if h5 is not None:
                 with contextlib.suppress(Exception):

@@ -23,6 +23,7 @@ silently smaller set).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 from collections.abc import Callable, Iterable, Sequence
@@ -31,7 +32,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from endomeasure import defaults
+from endomeasure import defaults, interrupts
 from endomeasure.conventions import Half
 from endomeasure.errors import BadInputError, EndomeasureError
 from endomeasure.io.video import is_video_file
@@ -184,8 +185,12 @@ class DetectReport:
 # ----------------------------------------------------------------- worker functions
 
 
-def _init_worker() -> None:
-    """One OpenCV thread per process: parallelism comes from the process pool."""
+def _init_worker(parent_pid: int | None = None) -> None:
+    """One OpenCV thread per process: parallelism comes from the process pool. In a pool
+    worker (``parent_pid`` given) also: Ctrl-C and SIGTERM left to the parent, and death
+    with the parent (:func:`endomeasure.interrupts.worker_initializer`)."""
+    if parent_pid is not None:
+        interrupts.worker_initializer(parent_pid)
     import cv2
 
     cv2.setNumThreads(1)
@@ -239,7 +244,12 @@ def _detect_task(name: str, pixels: np.ndarray, board: str, split: int, method: 
 
 
 class _Runner:
-    """Runs tasks in this process (one worker) or in one process pool reused for all."""
+    """Runs tasks in this process (one worker) or in one process pool reused for all.
+
+    Leaving it by an exception (Ctrl-C, SIGTERM, an error) ends the workers at once
+    instead of waiting for their running tasks; workers ignore Ctrl-C themselves (the
+    parent reports it) and die with the parent even when it is killed.
+    """
 
     def __init__(self, workers: int):
         self.workers = workers
@@ -250,12 +260,23 @@ class _Runner:
         if self.workers > 1:
             from concurrent.futures import ProcessPoolExecutor
 
-            self.pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_init_worker)
+            self.pool = ProcessPoolExecutor(
+                max_workers=self.workers, initializer=_init_worker, initargs=(os.getpid(),)
+            )
         return self
 
-    def __exit__(self, *exc_info) -> None:
-        if self.pool is not None:
-            self.pool.shutdown(cancel_futures=True)
+    def __exit__(self, exc_type, *exc_info) -> None:
+        if self.pool is None:
+            return
+        pool, self.pool = self.pool, None
+        if exc_type is not None:
+            _end_pool(pool)
+            return
+        try:
+            pool.shutdown(wait=True)
+        except BaseException:  # interrupted while the idle workers were let go
+            _end_pool(pool)
+            raise
 
     def run(
         self, function: Callable, argument_lists: Sequence[tuple], on_done: Callable[[], None]
@@ -270,13 +291,49 @@ class _Runner:
         from concurrent.futures import as_completed
 
         results: list = [None] * len(argument_lists)
-        futures = {
-            self.pool.submit(function, *args): index for index, args in enumerate(argument_lists)
-        }
+        # the workers are forked at the first submit: with the signals held back, none
+        # can catch a Ctrl-C before its initializer has set it to ignore them
+        with interrupts.blocked():
+            futures = {
+                self.pool.submit(function, *args): index
+                for index, args in enumerate(argument_lists)
+            }
         for future in as_completed(futures):
             results[futures[future]] = future.result()
             on_done()
         return results
+
+
+_WORKER_JOIN_S = 2.0
+"""How long to wait for a killed worker to be reaped (it dies at once; this bounds a hang)."""
+_MANAGER_JOIN_S = 1.0
+"""How long to let the pool's own thread finish its clean-up (ms normally; a thread still
+stuck after that is ended with the process)."""
+
+
+def _end_pool(pool) -> None:
+    """Cancel what has not started, kill the workers, reap them: no orphans, no waiting.
+
+    Python 3.11's ``ProcessPoolExecutor`` has no public way to end its workers (3.14 adds
+    ``kill_workers``), so they are taken from its ``_processes`` before ``shutdown``
+    forgets them.
+    """
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    manager = getattr(pool, "_executor_manager_thread", None)
+    call_queue = getattr(pool, "_call_queue", None)
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        with contextlib.suppress(OSError, ValueError, AttributeError):  # gone, or never started
+            process.kill()
+    for process in processes:
+        with contextlib.suppress(OSError, ValueError, AssertionError):
+            process.join(_WORKER_JOIN_S)
+    # The queue's feeder thread may be stuck writing a task (an image) that no worker
+    # will read: without a reader its write fails and the pool's threads can end.
+    with contextlib.suppress(AttributeError, OSError):
+        call_queue._reader.close()
+    if manager is not None:
+        manager.join(_MANAGER_JOIN_S)  # its clean-up done while stderr is still captured
 
 
 # ----------------------------------------------------------------------- the command
