@@ -26,6 +26,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Iterator
 
 __all__ = [
@@ -74,6 +75,7 @@ class _State:
     deferring = 0  # depth of deferred() blocks
     pending = False  # a signal came inside deferred(): raise when it ends
     reraise = False  # the last raise was swallowed (a destructor, a callback): raise again
+    in_hook = False  # the main thread is inside the unraisable hook: do not signal it yet
 
 
 _STATE = _State()
@@ -96,11 +98,14 @@ def _unraisable(hook_args) -> None:
     ``__del__``, a weakref callback, the garbage collector) is raised again a moment
     later, in the code that runs then, instead of being printed and lost."""
     if isinstance(hook_args.exc_value, KeyboardInterrupt) and _STATE.received is not None:
-        # the flag is set by the timer, not here: starting a thread waits on a lock, and
-        # a raise inside this hook would be dropped (and printed) in its turn
+        # the flag is set by the timer, not here, and only once this hook has returned:
+        # starting a thread waits on a lock, and a raise inside this hook would be
+        # dropped (and printed) in its turn
+        _STATE.in_hook = True
         timer = threading.Timer(_RERAISE_AFTER_S, _trip_again)
         timer.daemon = True
         timer.start()
+        _STATE.in_hook = False  # no call follows before the return: no handler runs here
         return
     _PREVIOUS_UNRAISABLEHOOK(hook_args)
 
@@ -109,6 +114,8 @@ _PREVIOUS_UNRAISABLEHOOK = sys.unraisablehook
 
 
 def _trip_again() -> None:
+    while _STATE.in_hook:
+        time.sleep(_RERAISE_AFTER_S)
     if _STATE.received is not None:
         _STATE.reraise = True
         os.kill(os.getpid(), _STATE.received)  # its handler runs in the main thread
@@ -283,8 +290,6 @@ def _die_with_parent() -> bool:
 
 
 def _watch_parent(parent_pid: int) -> None:
-    import time
-
     while os.getppid() == parent_pid:
         time.sleep(_PARENT_POLL_S)
     os.kill(os.getpid(), signal.SIGKILL)
