@@ -1150,6 +1150,61 @@ def repair(
         raise typer.Exit(1)
 
 
+@command("report")
+def report(
+    session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],
+    out: Annotated[
+        Path | None,
+        typer.Option("-o", "--out", help="HTML file (default: the session's name with .html)."),
+    ] = None,
+    depths: Annotated[
+        str | None,
+        typer.Option(
+            "--depths",
+            help="Trust map: z1,z2,... or START:STOP:STEP in mm (default: the nearest, middle "
+            "and farthest depth where the calibration saw the board).",
+        ),
+    ] = None,
+    bands: Annotated[
+        str,
+        typer.Option(
+            "--bands",
+            help="Trust map: GREEN,YELLOW limits of the predicted 95 % error of a 1 mm length, "
+            "percent.",
+        ),
+    ] = ",".join(f"{b:g}" for b in defaults.TRUST_BANDS_PERCENT),
+    json_output: JsonOption = False,
+) -> None:
+    """Write a self-contained HTML report of the session's calibrations for a browser.
+
+    Per calibrated model: the verdict and its reasons, the field the calibration covered,
+    residual vectors, bias per region and histogram against the noise, outliers, per-image
+    RMS (worst first), parameters with their +- and strong correlations, the baseline, and
+    a map of where to trust it. Then the board test, predicted against actual errors and
+    the stored measurements. A section the session cannot fill says what to run instead.
+    The session is only read.
+    """
+    from endomeasure.pipeline.report import write_report
+
+    try:
+        limits = tuple(float(b) for b in bands.split(","))
+    except ValueError:
+        limits = ()
+    if len(limits) != 2:
+        raise _bad_input(f"cannot read the bands {bands!r}", hint="give two percentages: 1,5")
+    summary = write_report(
+        session, out, depths=None if depths is None else parse_depths(depths), bands=limits
+    )
+    if json_output:
+        _print_json(summary.to_dict())
+        return
+    console = _stderr_console()
+    for section, state in summary.sections.items():
+        if state != "present":
+            console.print(f"{section}: {state}", markup=False)
+    console.print(f"report of {session} written to {summary.out}", markup=False)
+
+
 @command("measure")
 def measure(
     ctx: typer.Context,

@@ -19,6 +19,7 @@ __all__ = [
     "MAX_WORKERS_PER_CPU",
     "MIN_ZONE_MM",
     "PATCH_PX",
+    "TRUST_BANDS_PERCENT",
     "WARN_PERCENT",
     "ZONE_MM",
 ]
@@ -30,6 +31,11 @@ edits hold it only while they write, so two minutes means a stuck peer."""
 WARN_PERCENT = 5.0
 """Accuracy-index threshold (percent): the +-5 % that commercial videoscopes quote for
 stereo measurements in their working range."""
+
+TRUST_BANDS_PERCENT = (1.0, WARN_PERCENT)
+"""Limits of the report's trust map (percent of a 1 mm length, the 95 % error bound):
+green within 1 %, the accuracy stereo endoscopes reach in the middle of their range;
+yellow up to the operator warning (:data:`WARN_PERCENT`); red beyond it."""
 
 PATCH_PX = 15
 """Side of the correlation patch of the automatic search in the other half (px, odd)."""

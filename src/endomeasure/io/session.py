@@ -52,8 +52,9 @@ edit starts from the file as it is when the lock is granted.
 Errors
 ------
 A missing file, a file that is not HDF5, a truncated or damaged file (its checksum fails:
-the message names the damaged items), or an HDF5 file that is not a session raise :class:`~endomeasure.errors.SessionError`; a session written
-by an unknown major format version raises
+the message names the damaged items), or an HDF5 file that is not a session raise
+:class:`~endomeasure.errors.SessionError`; a session written by an unknown major format
+version raises
 :class:`~endomeasure.errors.SessionVersionError` naming both versions. Asking for an item
 the session does not hold raises :class:`~endomeasure.errors.BadInputError` listing what
 is there.

@@ -1,7 +1,8 @@
 """Figures of calibrations, the board test, predicted errors and error maps (matplotlib, Agg).
 
 matplotlib is imported inside each function (it is slow to import and only the commands
-that draw need it). Each function writes one PNG and returns its path.
+that draw need it). Each function writes one PNG and returns its path; given a binary
+file object instead of a path it writes there (:func:`png_bytes`).
 
 - :func:`plot_board_test` — the paper's Fig. 4: one row per board-test kind; one column
   per model with the error of every measurement at its place in the (left) image, and a
@@ -18,9 +19,10 @@ that draw need it). Each function writes one PNG and returns its path.
 
 from __future__ import annotations
 
+import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -32,6 +34,7 @@ __all__ = [
     "plot_matches",
     "plot_predicted_vs_actual",
     "plot_residuals",
+    "png_bytes",
 ]
 
 _UNITS = {"x-segment": "mm", "y-segment": "mm", "point-plane": "mm", "area": "mm²"}
@@ -47,14 +50,24 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path: str | Path, dpi: int = 100) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi, bbox_inches="tight")
+def _save(fig, path: str | Path | BinaryIO, dpi: int = 100) -> Path | BinaryIO:
+    """Write ``fig`` as PNG to a path (its folder made) or a binary file object."""
+    if not hasattr(path, "write"):
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, format="png", dpi=dpi, bbox_inches="tight")
     import matplotlib.pyplot as plt
 
     plt.close(fig)
     return path
+
+
+def png_bytes(draw, *args, **kwargs) -> bytes:
+    """The PNG that the plot function ``draw(*args, path, **kwargs)`` writes, as bytes
+    (figures embedded in a report instead of written beside it)."""
+    buffer = io.BytesIO()
+    draw(*args, buffer, **kwargs)
+    return buffer.getvalue()
 
 
 def plot_board_test(results: Mapping[str, Any], zone_mm: float, path: str | Path) -> Path:
