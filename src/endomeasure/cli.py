@@ -1102,21 +1102,44 @@ def _render_calibration(console: Console, report: Any) -> None:
 @command("export")
 def export(
     session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],
-    out: Annotated[Path, typer.Argument(help="Output file.", show_default=False)],
+    out: Annotated[
+        Path,
+        typer.Argument(
+            help="Output file; for ros-yaml and mrcal the name of the pair: probe.yaml "
+            "gives probe_left.yaml and probe_right.yaml.",
+            show_default=False,
+        ),
+    ],
     model: Annotated[str, typer.Option("--model", help="Stored model name.")] = "pinhole",
     fmt: Annotated[
-        str, typer.Option("--format", help="json or opencv-yaml (pinhole only).")
+        str,
+        typer.Option(
+            "--format",
+            help="json (any model); opencv-yaml, ros-yaml (ROS CameraInfo, one file per "
+            "half) or mrcal (.cameramodel, one per half), pinhole only; ray-table (.h5: "
+            "the ray of every pixel, any model).",
+        ),
     ] = "json",
     json_output: JsonOption = False,
 ) -> None:
-    """Write a calibrated model to JSON, or the pinhole pair to an OpenCV YAML file."""
+    """Write a calibrated model to a file other tools read (docs/exports.md).
+
+    JSON for any model and endomeasure itself; the pinhole pair as OpenCV, ROS or mrcal
+    calibration files; any model, also the non-central raytrace one, as a table of the
+    ray through every pixel centre.
+    """
     from endomeasure.pipeline.calibrate import export_session_model
 
-    path = export_session_model(session, model, fmt, out)
+    files = export_session_model(session, model, fmt, out)
     if json_output:
-        _print_json({"session": str(session), "model": model, "format": fmt, "out": str(path)})
+        given = files[0] if len(files) == 1 else out
+        _print_json(
+            {"session": str(session), "model": model, "format": fmt, "out": str(given),
+             "files": [str(f) for f in files]}
+        )  # fmt: skip
         return
-    _stderr_console().print(f"{model} from {session} written to {path} ({fmt})")
+    written = " and ".join(str(f) for f in files)
+    _stderr_console().print(f"{model} from {session} written to {written} ({fmt})", markup=False)
 
 
 @command("repair")
