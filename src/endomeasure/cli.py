@@ -24,7 +24,8 @@ The output contract
   argument) are such lines too, with exit 2, instead of click's box. Warnings of the
   libraries (Python warnings, and whatever OpenCV, libpng, FFmpeg or HDF5 write to the
   process's stderr) are captured and dropped, so they never mix with the messages;
-  ``--debug`` lets them through.
+  ``--debug`` lets them through. Tables (:func:`_print_table`) print every number
+  whole, also when piped.
 - stdout with ``--json``: always exactly one strict JSON document (RFC 8259: a value
   that is not finite is ``null``, never ``NaN``), also when the command fails: then it
   holds ``"error"`` (the same text as the stderr line) and ``"exit_code"``, next to
