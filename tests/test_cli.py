@@ -447,3 +447,57 @@ def test_a_truncated_video_is_one_line_in_a_real_process(tmp_path, rng, bad_vide
     assert result.stderr.count("\n") == 1 and result.stderr.startswith("error: ")
     assert f"[{bad_videos['cut']}]; " in result.stderr and "truncated" in result.stderr
     assert session.read_bytes() == before
+
+
+# ----- terminal output: whole numbers in tables, reflowed help ----------------------------
+
+ELLIPSIS = "\u2026"
+
+
+def test_a_wide_table_piped_at_80_columns_prints_every_number_whole(tmp_path):
+    from tests.conftest import make_pinhole_model
+    from tests.pipeline.measure_data import build_session
+
+    session, _ = build_session(tmp_path / "m.h5", models=("pinhole",))
+    model = make_pinhole_model()
+    points = np.array([[-2.0, 0.5, 15.0], [1.5, -1.0, 19.0]])
+    args = ["measure", str(session), "--model", "pinhole", "--image", "scene"]
+    for half, option in ((Half.LEFT, "--left"), (Half.RIGHT, "--right")):
+        for q in model.project(points, half).pixels:
+            args += [option, f"{q[0]:.6f},{q[1]:.6f}"]
+    result = runner.invoke(cli.app, args, env={"COLUMNS": "80"})  # captured: not a terminal
+    assert result.exit_code == 0, result.output
+    assert ELLIPSIS not in result.stderr
+    table_lines = [line for line in result.stderr.splitlines() if "│" in line]
+    assert max(len(line) for line in table_lines) > 80  # the table is wider than 80 columns
+    for half in (Half.LEFT, Half.RIGHT):
+        for q in model.project(points, half).pixels:
+            assert "{:.2f},{:.2f}".format(*q) in result.stderr
+    for p in points:
+        assert all(f"{v:.4f}" in result.stderr for v in p)
+
+
+def test_measure_help_paragraphs_are_reflowed_to_the_width():
+    """At 100 columns each line of a help paragraph but its last is filled: the next
+    line's first word would not have fitted on it (the docstring's own line breaks,
+    ~88 characters, would leave room)."""
+    result = runner.invoke(cli.app, ["measure", "-h"], env={"COLUMNS": "100"})
+    assert result.exit_code == 0
+    text = result.stdout.split("╭")[0]  # the description, before the option boxes
+    paragraphs = [[]]
+    for line in (line.rstrip() for line in text.splitlines()):
+        if line:
+            paragraphs[-1].append(line)
+        elif paragraphs[-1]:
+            paragraphs.append([])
+    checked = 0
+    for lines in paragraphs:
+        if lines and lines[0].lstrip().startswith("Usage:"):
+            continue
+        for line, following in zip(lines, lines[1:], strict=False):
+            if following.lstrip().startswith("- "):  # a list item starts its own line
+                continue
+            next_word = following.split()[0]
+            assert len(line) + 1 + len(next_word) > 100 - 4, (line, following)
+            checked += 1
+    assert checked >= 3  # the measure description wraps over several lines

@@ -24,7 +24,8 @@ The output contract
   argument) are such lines too, with exit 2, instead of click's box. Warnings of the
   libraries (Python warnings, and whatever OpenCV, libpng, FFmpeg or HDF5 write to the
   process's stderr) are captured and dropped, so they never mix with the messages;
-  ``--debug`` lets them through.
+  ``--debug`` lets them through. Tables (:func:`_print_table`) print every number
+  whole, also when piped.
 - stdout with ``--json``: always exactly one strict JSON document (RFC 8259: a value
   that is not finite is ``null``, never ``NaN``), also when the command fails: then it
   holds ``"error"`` (the same text as the stderr line) and ``"exit_code"``, next to
@@ -37,9 +38,11 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import inspect
 import json
 import math
 import os
+import re
 import sys
 import tempfile
 import traceback
@@ -343,8 +346,37 @@ def _error_boundary(json_output: bool = False):
         )
 
 
+_LIST_ITEM = re.compile(r"([-*]|\d+[.)])\s")
+"""A line that starts a list item keeps its own line in a help text."""
+
+
+def _reflowed(doc: str | None) -> str | None:
+    """A docstring as a command's help text: the lines of each paragraph joined into one,
+    so that the help reflows to the terminal's width instead of keeping the source's
+    line breaks (typer keeps them after the first paragraph). Blank lines still part
+    paragraphs, list items (``- ``, ``* ``, ``1. ``) start their own lines, and a block
+    starting with ``\\b`` (click's "do not rewrap") is kept as written."""
+    if not doc:
+        return doc
+    paragraphs = []
+    for block in re.split(r"\n\s*\n", inspect.cleandoc(doc)):
+        if block.startswith("\b"):
+            paragraphs.append(block)
+            continue
+        lines: list[str] = []
+        for line in block.splitlines():
+            text = line.strip()
+            if lines and not _LIST_ITEM.match(text):
+                lines[-1] += " " + text
+            else:
+                lines.append(text)
+        paragraphs.append("\n".join(lines))
+    return "\n\n".join(paragraphs)
+
+
 def command(name: str | None = None, **kwargs: Any):
-    """Register a command on the app, wrapped in the error boundary."""
+    """Register a command on the app, wrapped in the error boundary; its docstring is
+    its help, reflowed (:func:`_reflowed`)."""
 
     def decorate(function):
         @functools.wraps(function)
@@ -357,6 +389,7 @@ def command(name: str | None = None, **kwargs: Any):
             except KeyboardInterrupt as exc:  # the first signal came while the boundary
                 _fail("", EXIT_INTERRUPTED, exc)  # handled another error: it wins
 
+        kwargs.setdefault("help", _reflowed(function.__doc__))
         app.command(name, **kwargs)(wrapper)
         return function
 
@@ -383,6 +416,42 @@ def _stderr_console() -> Console:
     from rich.console import Console
 
     return Console(stderr=True)
+
+
+MEASURE_WIDTH = 10_000
+"""Columns offered to a table to measure its natural width (a bound it never meets)."""
+
+
+def _print_table(console: Console, table: Any) -> None:
+    """Print a rich table so that no number is ever cut ("147.30,264…").
+
+    A right-aligned (numeric) column is never narrower than its widest cell and never
+    wraps; a text column wraps at spaces, never narrower than its longest word (or its
+    header's), and no cell ends in an ellipsis. Off a terminal (a pipe, a log, where
+    rich assumes 80 columns) the table is printed at its natural width, however wide; on
+    a terminal it is printed wider than the terminal only when even its narrowest
+    layout does not fit.
+    """
+    from rich.measure import Measurement
+
+    wide = console.options.update_width(MEASURE_WIDTH)
+    for column in table.columns:
+        column.overflow = "fold"
+        column.no_wrap = column.justify == "right"
+        cells = [Measurement.get(console, wide, c) for c in (column.header, *column.cells)]
+        whole = [m.maximum if column.no_wrap else m.minimum for m in cells]
+        column.min_width = max([column.min_width or 0, *whole])
+    measure = Measurement.get(console, wide, table)
+    need = measure.minimum if console.is_terminal else measure.maximum
+    if need <= console.width:
+        console.print(table)
+        return
+    width = console.width
+    console.width = need
+    try:
+        console.print(table)
+    finally:
+        console.width = width
 
 
 @contextlib.contextmanager
@@ -662,7 +731,7 @@ def info(
         table.add_column("spec")
         for board in summary.boards:
             table.add_row(board["name"], board["spec"])
-        console.print(table)
+        _print_table(console, table)
     if summary.detections:
         table = Table(title="detections", title_justify="left")
         for column in ("board", "half", "images", "found", "failed", "corners"):
@@ -673,7 +742,7 @@ def info(
                 det["half"],
                 *(str(det[k]) for k in ("images", "found", "failed", "corners")),
             )
-        console.print(table)
+        _print_table(console, table)
     if summary.models:
         table = Table(title="models", title_justify="left")
         for column in ("model", "type", "parameters", "RMS", "verdict"):
@@ -682,7 +751,7 @@ def info(
             rms = f"{model['rms']:.4f} {model['rms_units']}" if "rms" in model else "-"
             table.add_row(model["name"], model["registry_name"], str(model["n_params"]), rms,
                           model["verdict"])  # fmt: skip
-        console.print(table)
+        _print_table(console, table)
         for model in summary.models:
             for reason in model["verdict_reasons"]:
                 console.print(f"{model['name']} {model['verdict']}: {reason}", markup=False)
@@ -899,7 +968,7 @@ def _render_detect(console: Console, report: Any) -> None:
     _print_videos(console, report.videos)
     table = Table(title=f"detect {report.board} ({report.image_set})", title_justify="left")
     for column in ("image", "status", "left", "right", "edge width px (L/R)"):
-        table.add_column(column)
+        table.add_column(column, justify="right" if column.startswith("edge") else "left")
     for image in report.images:
         if not image.halves:
             table.add_row(image.name or image.path, "[red]failed[/red]", image.error, "", "")
@@ -915,7 +984,7 @@ def _render_detect(console: Console, report: Any) -> None:
         )
         colour = {"ok": "green", "one-half": "yellow", "failed": "red"}[image.status]
         table.add_row(image.name, f"[{colour}]{image.status}[/{colour}]", *cells, widths)
-    console.print(table)
+    _print_table(console, table)
     counts = report.counts
     found, examined = report.halves_found
     split = "not found" if report.split is None else f"{report.split} ({report.split_source})"
@@ -988,7 +1057,7 @@ def simulate(
         visible = info["fully_visible"]
         whole = "-" if visible is None else f"{visible}/{info['images']}"
         table.add_row(name, str(info["images"]), whole)
-    console.print(table)
+    _print_table(console, table)
     noise = "noise-free" if report.noise_free else "with sensor noise"
     console.print(
         f"{report.out_dir}: images {noise}, split column {report.split}, ground truth in "
@@ -1074,7 +1143,7 @@ def _render_calibration(console: Console, report: Any) -> None:
             table.add_row(s.name, s.verdict, *(f"{v:.4f}" for v in figures),
                           f"{s.rms_ratio:.2f}", str(s.n_corners), str(s.n_outliers),
                           worst)  # fmt: skip
-        console.print(table)
+        _print_table(console, table)
         for s in models.values():
             for reason in s.reasons:
                 console.print(f"{s.name} {s.verdict}: {reason}", markup=False)
@@ -1088,7 +1157,7 @@ def _render_calibration(console: Console, report: Any) -> None:
         for name, value in s.params.items():
             std = s.std.get(name)
             table.add_row(name, f"{value:.6g}", "fixed" if std is None else f"{std:.2g}")
-        console.print(table)
+        _print_table(console, table)
         strongest = ", ".join(f"{a}~{b} {r:+.3f}" for a, b, r in s.correlations)
         console.print(f"strongest correlations: {strongest}")
         for path in s.plots:
@@ -1102,21 +1171,44 @@ def _render_calibration(console: Console, report: Any) -> None:
 @command("export")
 def export(
     session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],
-    out: Annotated[Path, typer.Argument(help="Output file.", show_default=False)],
+    out: Annotated[
+        Path,
+        typer.Argument(
+            help="Output file; for ros-yaml and mrcal the name of the pair: probe.yaml "
+            "gives probe_left.yaml and probe_right.yaml.",
+            show_default=False,
+        ),
+    ],
     model: Annotated[str, typer.Option("--model", help="Stored model name.")] = "pinhole",
     fmt: Annotated[
-        str, typer.Option("--format", help="json or opencv-yaml (pinhole only).")
+        str,
+        typer.Option(
+            "--format",
+            help="json (any model); opencv-yaml, ros-yaml (ROS CameraInfo, one file per "
+            "half) or mrcal (.cameramodel, one per half), pinhole only; ray-table (.h5: "
+            "the ray of every pixel, any model).",
+        ),
     ] = "json",
     json_output: JsonOption = False,
 ) -> None:
-    """Write a calibrated model to JSON, or the pinhole pair to an OpenCV YAML file."""
+    """Write a calibrated model to a file other tools read (docs/exports.md).
+
+    JSON for any model and endomeasure itself; the pinhole pair as OpenCV, ROS or mrcal
+    calibration files; any model, also the non-central raytrace one, as a table of the
+    ray through every pixel centre.
+    """
     from endomeasure.pipeline.calibrate import export_session_model
 
-    path = export_session_model(session, model, fmt, out)
+    files = export_session_model(session, model, fmt, out)
     if json_output:
-        _print_json({"session": str(session), "model": model, "format": fmt, "out": str(path)})
+        given = files[0] if len(files) == 1 else out
+        _print_json(
+            {"session": str(session), "model": model, "format": fmt, "out": str(given),
+             "files": [str(f) for f in files]}
+        )  # fmt: skip
         return
-    _stderr_console().print(f"{model} from {session} written to {path} ({fmt})")
+    written = " and ".join(str(f) for f in files)
+    _stderr_console().print(f"{model} from {session} written to {written} ({fmt})", markup=False)
 
 
 @command("repair")
@@ -1372,7 +1464,7 @@ def _render_matches(console: Console, matches: list[Any]) -> None:
             f"{m.ray_gap_mm:.4f}" if m.ok else "-",
             m.status.value if m.ok else f"[red]{m.status.value}[/red]",
         )
-    console.print(table)
+    _print_table(console, table)
 
 
 def _render_measurement(console: Console, r: Any) -> None:
@@ -1399,7 +1491,7 @@ def _render_measurement(console: Console, r: Any) -> None:
             f"{p.gap_mm:.4f}",
             f"{p.rms_px:.3f}",
         )
-    console.print(table)
+    _print_table(console, table)
     e = r.error
     console.print(
         f"[bold]{r.kind} = {e.value:.4f} {r.unit}[/bold]  +- {e.std:.4f} {r.unit} (1 sigma), "
@@ -1452,7 +1544,7 @@ def _render_board_test(console: Console, report: Any) -> None:
             f"{row['std_error']:.5f}",
             "-" if rel is None else f"{rel:+.3f}",
         )
-    console.print(table)
+    _print_table(console, table)
     for name, verdict in report.verdicts.items():
         if verdict == "failed":
             console.print(f"{name}: its calibration failed; figures for comparison only")
@@ -1659,7 +1751,7 @@ def _render_map(console: Console, r: Any) -> None:
             f"{d['std_max']:.5f}",
             f"{d['bias_median']:+.5f}",
         )
-    console.print(table)
+    _print_table(console, table)
     console.print(
         f"{_noise_text(r.noise)}, calibration covariance "
         f"{'' if r.calibration else 'not '}included; {r.method.upper()}"
@@ -1706,7 +1798,7 @@ def _render_board_prediction(console: Console, r: Any) -> None:
             "-" if ratio is None else f"[{colour}]{ratio:.2f}[/{colour}]",
             f"{100 * z['within_band']:.0f}%",
         )
-    console.print(table)
+    _print_table(console, table)
     console.print(f"errors inside their predicted 2-sigma band: {100 * r.within_band:.1f}%")
     if r.plot:
         console.print(f"plot: {r.plot}")

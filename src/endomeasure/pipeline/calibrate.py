@@ -348,15 +348,28 @@ def _options_per_model(names, values: dict, free: frozenset, hold: frozenset, se
     return options
 
 
-def export_session_model(session: str | Path, name: str, fmt: str, out: str | Path) -> Path:
-    """``endomeasure export``: write a stored model (and its calibration figures) to a file."""
-    from endomeasure.io.export import export_model
-    from endomeasure.io.outputs import checked_output
+def export_session_model(
+    session: str | Path, name: str, fmt: str, out: str | Path
+) -> tuple[Path, ...]:
+    """``endomeasure export``: write a stored model (and its calibration figures) to the
+    file or files of format ``fmt`` (:func:`~endomeasure.io.export.export_files`)."""
+    from endomeasure.io.export import export_files, export_model
+    from endomeasure.io.outputs import checked_outputs
     from endomeasure.io.records import calibration_extras, check_usable, model_from_record
     from endomeasure.io.session import open_session
 
-    out = checked_output(out, "exported model", inputs=[session])
+    names = export_files(fmt, out)
+    whats = (
+        ["exported model"]
+        if len(names) == 1
+        else [f"exported model of the {half} half" for half in ("left", "right")]
+    )
+    files = checked_outputs(
+        [(path, what, None) for path, what in zip(names, whats, strict=True)], inputs=[session]
+    )
     with open_session(session) as s:
         record = s.model(name)
     check_usable(record, session)
-    return export_model(model_from_record(record), fmt, out, calibration_extras(record))
+    return export_model(
+        model_from_record(record), fmt, out, calibration_extras(record), files=tuple(files)
+    )
