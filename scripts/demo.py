@@ -11,7 +11,8 @@ Runs the command-line tool exactly as a user would, on the rendered images in
 4. ``predict-error --board-test``: predicted against actual errors;
 5. ``measure`` a distance between two marks on a scene image, clicking only the left
    half (the matches in the right half are found automatically), with its predicted +-;
-6. ``info``: what the session now holds.
+6. ``info``: what the session now holds;
+7. ``report``: the calibration report, ``OUT_DIR/report.html``, for a browser.
 
 Usage: ``python scripts/demo.py [OUT_DIR]`` (default ``out/demo``). Exits with the first
 failing command's exit code.
@@ -85,7 +86,9 @@ def main() -> None:
         args += ["--left", u_v]
     step(f"a distance on {scene}, matched automatically in the right half", *args)
     step("what the session holds", "info", session)
-    print(f"\nsession and figures in {out}")
+    report = out / "report.html"
+    step("the calibration report (open it in a browser)", "report", session, "-o", str(report))
+    print(f"\nsession and figures in {out}; the report: {report.resolve().as_uri()}")
 
 
 if __name__ == "__main__":
