@@ -28,6 +28,11 @@ __all__ = ["VerifyReport", "verify_calibration"]
 
 METHOD = "ut"
 TEST_IMAGE_NOISE = "each image's noise from its neighbouring corners"
+MAX_SCALE_ERROR = 0.2
+"""Largest median relative length error ``verify`` judges as a calibration's: a probe's
+baseline does not drift by a fifth, while a board of another pitch than the spec says
+(common pitches differ by factors of 2 or more) is off by that much or more. Beyond it
+the input is refused (exit 2) instead of judged."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,6 +109,20 @@ def _image_noise(bt, cm, grids):
     return image_noise(None, cm.sigma_px, f"model {cm.name!r}", misfit=cm.misfit)
 
 
+def _check_pitch(table, spec) -> None:
+    """Refuse images whose squares measure far from the spec's pitch (MAX_SCALE_ERROR)."""
+    sel = np.isin(table.kind, ("x-segment", "y-segment")) & np.isfinite(table.error)
+    if not sel.any():
+        return
+    measured = float(np.median(table.measured[sel]))
+    if abs(measured / spec.square_mm - 1) > MAX_SCALE_ERROR:
+        raise BadInputError(
+            f"the squares measure {measured:.3g} mm, the board spec {spec.canonical()} says "
+            f"{spec.square_mm:g} mm: another board, or a calibration of another probe",
+            hint="give --board the spec of the board in the images",
+        )
+
+
 def verify_calibration(
     session: str | Path,
     images: Sequence[str | Path],
@@ -119,7 +138,8 @@ def verify_calibration(
     session : path
         Opened read-only; nothing is written.
     images : sequence of path
-        Image files (the session's size) showing the whole board in both halves.
+        Image files (the session's size) showing the whole board in both halves, or
+        directories of them.
     board : str
         Board spec (:func:`endomeasure.features.boards.parse_board_spec`).
     model : str
@@ -139,7 +159,10 @@ def verify_calibration(
     from endomeasure.measure.verify import VERIFY_ALPHA, verify_statistics
     from endomeasure.pipeline import calibrated_model
 
+    from endomeasure.io.images import find_image_files
+
     spec = parse_board_spec(board)
+    images = find_image_files(images)
     if not images:
         raise BadInputError("verify needs at least one image of the board")
     names = [str(p) for p in images]
@@ -152,6 +175,7 @@ def verify_calibration(
     attrs, _ = board_attrs(spec)
     sets = board_sets({spec.canonical(): attrs}, detections, names, str(session))
     bt = run_board_test(model, cm.model, sets, defaults.ZONE_MM)
+    _check_pitch(bt.table, spec)
     grids = {spec.canonical(): np.asarray(spec.object_points)}
     noise = _image_noise(bt, cm, grids)
     pred = board_predictions(bt, cm.model, grids, noise, param_cov=cm.param_cov,
