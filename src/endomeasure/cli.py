@@ -1730,3 +1730,75 @@ def _render_verify(console: Console, r: Any) -> None:
         f"p {d.p:.2g}); {100 * s.within_band:.1f}% inside the 2-sigma band; "
         f"each test at p < {b.alpha:g}"
     )
+
+
+@command("compare")
+def compare(
+    a: Annotated[Path, typer.Argument(help="Session A (.h5).", show_default=False)],
+    b: Annotated[Path, typer.Argument(help="Session B (.h5; may be A).", show_default=False)],
+    model: Annotated[str, typer.Option("--model", help="Calibrated model of A.")] = "raytrace",
+    model_b: Annotated[
+        str | None, typer.Option("--model-b", help="Calibrated model of B (default: --model).")
+    ] = None,
+    depths: Annotated[
+        str | None,
+        typer.Option(
+            "--depths",
+            help="START:STOP:STEP or z1,z2,... in mm (default: 3 planes inside the depths "
+            "both calibrations saw).",
+        ),
+    ] = None,
+    grid: Annotated[str, typer.Option("--grid", help="NU,NV grid over A's left half.")] = "16,12",
+    plot: Annotated[
+        Path | None, typer.Option("--plot", help="PNG of the disagreement maps.")
+    ] = None,
+    json_output: JsonOption = False,
+) -> None:
+    """Where and by how much two calibrations disagree (pixels, and a 1 mm length
+    against their combined +-).
+
+    Exit 0: agree. Exit 1: disagree (at some depth the RMS of the normalised length
+    difference exceeds its limit at the 1 % level). Exit 2: bad input.
+    """
+    from endomeasure.errors import GoalNotMetError
+    from endomeasure.pipeline.compare import compare_calibrations
+
+    report = compare_calibrations(
+        a, b, model, model_b, depths=None if depths is None else parse_depths(depths),
+        grid=parse_grid(grid), plot=plot,
+    )  # fmt: skip
+    error = "" if report.agree else _one_line("disagree: " + "; ".join(report.reasons))
+    if json_output:
+        _print_json(_with_error(report.to_dict(), error, 1))
+    else:
+        _render_compare(_stderr_console(), report)
+    if not report.agree:
+        raise GoalNotMetError(error)
+    sys.stderr.write(f"agree: {report.model_b} of {b} agrees with {report.model_a} of {a} "
+                     "within their combined +-\n")  # fmt: skip
+
+
+def _render_compare(console: Console, r: Any) -> None:
+    from rich.table import Table
+
+    table = Table(
+        title=f"{r.model_b} ({r.b}) against {r.model_a} ({r.a}), "
+        f"{r.comparison.size_mm:g} mm x-segment",
+        title_justify="left",
+    )
+    for column in ("z mm", "points", "left RMS/max px", "right RMS/max px", "length diff RMS mm",
+                   "combined +- mm", "RMS z", "max |z|", "outside 2 sigma"):  # fmt: skip
+        table.add_column(column, justify="right")
+    for d in r.per_depth:
+        colour = "green" if d["agree"] else "red"
+        table.add_row(
+            f"{d['z_mm']:g}", str(d["n"]), f"{d['left_rms_px']:.3f}/{d['left_max_px']:.3f}",
+            f"{d['right_rms_px']:.3f}/{d['right_max_px']:.3f}",
+            f"{d['length_diff_rms_mm']:.5f}", f"{d['sigma_rms_mm']:.5f}",
+            f"[{colour}]{d['rms_z']:.2f}[/{colour}]", f"{d['max_abs_z']:.2f}",
+            f"{100 * d['outside_band']:.0f}%",
+        )  # fmt: skip
+    console.print(table)
+    console.print(f"RMS z limit {r.rms_z_limit:.2f} (level {r.alpha:g} over the depths)")
+    if r.plot:
+        console.print(f"plot: {r.plot}")

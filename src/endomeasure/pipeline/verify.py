@@ -153,13 +153,12 @@ def verify_calibration(
     VerifyReport
     """
     from endomeasure.features.boards import parse_board_spec
+    from endomeasure.io.images import find_image_files
     from endomeasure.io.records import board_attrs
     from endomeasure.io.session import open_session
     from endomeasure.measure.board_runs import board_predictions, board_sets, run_board_test
     from endomeasure.measure.verify import VERIFY_ALPHA, verify_statistics
     from endomeasure.pipeline import calibrated_model
-
-    from endomeasure.io.images import find_image_files
 
     spec = parse_board_spec(board)
     images = find_image_files(images)
