@@ -74,11 +74,14 @@ def test_the_limit_is_the_bonferroni_normal_quantile():
     assert rms_z_limit(0.01, 3) == pytest.approx(2.9351994, abs=1e-6)
 
 
-def test_mismatched_sensors_and_no_covariance_are_refused(model_factory):
+def test_another_sensor_and_no_covariance_are_refused(model_factory):
     from endomeasure.errors import BadInputError
 
     a = model_factory["pinhole"]()
-    with pytest.raises(BadInputError, match="split"):
-        compare_models(a, a.with_config(split=300), DEPTHS, GRID, cov_a=_cov(a, 1e-5))
+    with pytest.raises(BadInputError, match="image size"):
+        compare_models(a, a.with_config(image_size=(800, 600)), DEPTHS, GRID, cov_a=_cov(a, 1e-5))
+    # another split is another probe's, not an error
+    moved = compare_models(a, a.with_config(split=300), DEPTHS, GRID, cov_a=_cov(a, 1e-5))
+    assert moved.per_depth()
     with pytest.raises(BadInputError, match="covariance"):
         compare_models(a, a, DEPTHS, GRID)

@@ -189,7 +189,7 @@ def compare_models(
     Parameters
     ----------
     model_a, model_b : CameraModel
-        Of one image size and split (any kinds).
+        Of one image size (any kinds and splits).
     depths : sequence of float, mm
     grid : (int, int)
         Pixels per row and column over A's left half.
@@ -207,13 +207,13 @@ def compare_models(
     from endomeasure.measure.predict import template_points, volume_grid
     from endomeasure.solvers.triangulate import triangulate
 
-    for what, a, b in (("image size", model_a.config.image_size, model_b.config.image_size),
-                       ("split", model_a.config.split, model_b.config.split)):  # fmt: skip
-        if tuple(np.atleast_1d(a)) != tuple(np.atleast_1d(b)):
-            raise BadInputError(
-                f"the two calibrations have another {what} ({a} and {b}): not one probe's",
-                hint="compare calibrations of the same sensor and split",
-            )
+    # another split is fine (each model projects into its own halves); another sensor is not
+    size_a, size_b = tuple(model_a.config.image_size), tuple(model_b.config.image_size)
+    if size_a != size_b:
+        raise BadInputError(
+            f"the two calibrations have another image size ({size_a} and {size_b})",
+            hint="compare calibrations of the same sensor",
+        )
     if cov_a is None and cov_b is None:
         raise BadInputError(
             "neither calibration carries a parameter covariance, so their disagreement "
