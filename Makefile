@@ -48,6 +48,7 @@ ACCURACY_RUNS := \
 	"bench/operator_designs.py $(ACCURACY_WORK)/designs" \
 	"bench/figure5.py $(ACCURACY_WORK)/accuracy.h5 $(ACCURACY_WORK)/designs/design_005.h5" \
 	"bench/accuracy_split.py --work $(ACCURACY_WORK)/split" \
+	"bench/accuracy_compare.py --work $(ACCURACY_WORK)/compare" \
 	"bench/accuracy_rotation.py --poses 24 --designs 10 --seed 0" \
 	"bench/fault_bitflips.py $(ACCURACY_WORK)/accuracy.h5 --work $(ACCURACY_WORK)/bitflips" \
 	"bench/fault_disk_full.py --work $(ACCURACY_WORK)/disk_full" \

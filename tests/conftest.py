@@ -114,3 +114,15 @@ def assert_snell(surfaces) -> None:
         np.testing.assert_allclose(n_a * sin_a, n_b * sin_b, atol=1e-8)
         coplanar = np.einsum("ni,ni->n", np.cross(a, b), np.broadcast_to(normal, a.shape))
         np.testing.assert_allclose(coplanar, 0.0, atol=1e-8)
+
+
+def scaled_world(model, factor: float):
+    """``model`` in a world scaled by ``factor``: every length parameter (unit mm: the
+    pinhole pair's stereo translation, the prism faces' distances) times ``factor``, so a
+    point ``factor * p`` projects where ``p`` did and every length triangulates
+    ``factor`` times larger (a baseline scaled by ``factor``)."""
+    p = model.params.copy()
+    for i, name in enumerate(model.PARAM_NAMES):
+        if model.unit(name) == "mm":
+            p[i] *= factor
+    return model.with_params(p)

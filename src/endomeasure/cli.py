@@ -1802,3 +1802,150 @@ def _render_board_prediction(console: Console, r: Any) -> None:
     console.print(f"errors inside their predicted 2-sigma band: {100 * r.within_band:.1f}%")
     if r.plot:
         console.print(f"plot: {r.plot}")
+
+
+# ----- verify and compare -------------------------------------------------------------------
+
+
+@command("verify")
+def verify(
+    session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],
+    images: Annotated[
+        list[Path],
+        typer.Argument(
+            help="Image files (or directories of them) of the board, whole in both halves.",
+            show_default=False,
+        ),
+    ],
+    board: Annotated[
+        str,
+        typer.Option(
+            "--board",
+            help="Board spec: chessboard:COLSxROWS:SQUARE_MM (inner corners) or "
+            "charuco:SQUARES_XxSQUARES_Y:SQUARE_MM:MARKER_MM:DICT.",
+        ),
+    ],
+    model: Annotated[str, typer.Option("--model", help="Calibrated model.")] = "raytrace",
+    json_output: JsonOption = False,
+) -> None:
+    """Check a stored calibration with a few images of a known board (the session is not
+    changed).
+
+    Exit 0: pass. Exit 1: recalibrate (a common length bias, or errors larger than
+    predicted, each tested at the 0.5 % level). Exit 2: bad input.
+    """
+    from endomeasure.errors import GoalNotMetError
+    from endomeasure.pipeline.verify import verify_calibration
+
+    report = verify_calibration(session, images, board, model)
+    error = (
+        "" if report.passed else _one_line("recalibrate: " + "; ".join(report.statistics.reasons))
+    )
+    if json_output:
+        _print_json(_with_error(report.to_dict(), error, 1))
+    else:
+        _render_verify(_stderr_console(), report)
+    if not report.passed:
+        raise GoalNotMetError(error)
+    sys.stderr.write(f"pass: the {report.model} calibration agrees with {len(report.images)} "
+                     f"image(s) of {report.board}\n")  # fmt: skip
+
+
+def _render_verify(console: Console, r: Any) -> None:
+    from rich.table import Table
+
+    s = r.statistics
+    table = Table(
+        title=f"verify {r.model} with {len(r.images)} image(s) of {r.board} (sigma "
+        f"{_sigma_text(r.noise.sigma)} from {r.noise.source})",
+        title_justify="left",
+    )
+    for column in ("kind", "n", "true", "mean error", "mean %", "predicted std", "RMS z",
+                   "in 2-sigma band"):  # fmt: skip
+        table.add_column(column, justify="left" if column == "kind" else "right")
+    for k in s.per_kind:
+        table.add_row(
+            k["kind"], str(k["n"]), f"{k['true']:g}", f"{k['mean_error']:+.5f}",
+            f"{k['relative_mean_percent']:+.3f}", f"{k['predicted_std_rms']:.5f}",
+            f"{k['rms_z']:.2f}", f"{100 * k['within_band']:.0f}%",
+        )  # fmt: skip
+    console.print(table)
+    b, d = s.bias, s.dispersion
+    console.print(
+        f"length bias {100 * b.mean_relative:+.3f} % +-{100 * b.predicted_std:.3f} % "
+        f"(z {b.z:+.2f}, p {b.p:.2g}); RMS z {d.rms_z:.2f} (limit {d.rms_z_limit:.2f}, "
+        f"p {d.p:.2g}); {100 * s.within_band:.1f}% inside the 2-sigma band; "
+        f"each test at p < {b.alpha:g}"
+    )
+
+
+@command("compare")
+def compare(
+    a: Annotated[Path, typer.Argument(help="Session A (.h5).", show_default=False)],
+    b: Annotated[Path, typer.Argument(help="Session B (.h5; may be A).", show_default=False)],
+    model: Annotated[str, typer.Option("--model", help="Calibrated model of A.")] = "raytrace",
+    model_b: Annotated[
+        str | None, typer.Option("--model-b", help="Calibrated model of B (default: --model).")
+    ] = None,
+    depths: Annotated[
+        str | None,
+        typer.Option(
+            "--depths",
+            help="START:STOP:STEP or z1,z2,... in mm (default: 3 planes inside the depths "
+            "both calibrations saw).",
+        ),
+    ] = None,
+    grid: Annotated[str, typer.Option("--grid", help="NU,NV grid over A's left half.")] = "16,12",
+    plot: Annotated[
+        Path | None, typer.Option("--plot", help="PNG of the disagreement maps.")
+    ] = None,
+    json_output: JsonOption = False,
+) -> None:
+    """Where and by how much two calibrations disagree (pixels, and a 1 mm length
+    against their combined +-).
+
+    Exit 0: agree. Exit 1: disagree (at some depth the RMS of the normalised length
+    difference exceeds its limit at the 1 % level). Exit 2: bad input.
+    """
+    from endomeasure.errors import GoalNotMetError
+    from endomeasure.pipeline.compare import compare_calibrations
+
+    report = compare_calibrations(
+        a, b, model, model_b, depths=None if depths is None else parse_depths(depths),
+        grid=parse_grid(grid), plot=plot,
+    )  # fmt: skip
+    error = "" if report.agree else _one_line("disagree: " + "; ".join(report.reasons))
+    if json_output:
+        _print_json(_with_error(report.to_dict(), error, 1))
+    else:
+        _render_compare(_stderr_console(), report)
+    if not report.agree:
+        raise GoalNotMetError(error)
+    sys.stderr.write(f"agree: {report.model_b} of {b} agrees with {report.model_a} of {a} "
+                     "within their combined +-\n")  # fmt: skip
+
+
+def _render_compare(console: Console, r: Any) -> None:
+    from rich.table import Table
+
+    table = Table(
+        title=f"{r.model_b} ({r.b}) against {r.model_a} ({r.a}), "
+        f"{r.comparison.size_mm:g} mm x-segment",
+        title_justify="left",
+    )
+    for column in ("z mm", "points", "left RMS/max px", "right RMS/max px", "length diff RMS mm",
+                   "combined +- mm", "RMS z", "max |z|", "outside 2 sigma"):  # fmt: skip
+        table.add_column(column, justify="right")
+    for d in r.per_depth:
+        colour = "green" if d["agree"] else "red"
+        table.add_row(
+            f"{d['z_mm']:g}", str(d["n"]), f"{d['left_rms_px']:.3f}/{d['left_max_px']:.3f}",
+            f"{d['right_rms_px']:.3f}/{d['right_max_px']:.3f}",
+            f"{d['length_diff_rms_mm']:.5f}", f"{d['sigma_rms_mm']:.5f}",
+            f"[{colour}]{d['rms_z']:.2f}[/{colour}]", f"{d['max_abs_z']:.2f}",
+            f"{100 * d['outside_band']:.0f}%",
+        )  # fmt: skip
+    console.print(table)
+    console.print(f"RMS z limit {r.rms_z_limit:.2f} (level {r.alpha:g} over the depths)")
+    if r.plot:
+        console.print(f"plot: {r.plot}")

@@ -14,7 +14,9 @@ file object instead of a path it writes there (:func:`png_bytes`).
 - :func:`plot_matches` — operator points found automatically in the other half: both
   halves with the points, their matches and the searched epipolar curves;
 - :func:`plot_residuals` — a calibration's residual vectors over the image and residual
-  length against distance.
+  length against distance;
+- :func:`plot_comparison` — where two calibrations disagree: per depth plane, the pixel
+  disagreement in both halves and the normalised length difference over the left half.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from endomeasure.conventions import Half
 
 __all__ = [
     "plot_board_test",
+    "plot_comparison",
     "plot_error_map",
     "plot_matches",
     "plot_predicted_vs_actual",
@@ -355,3 +358,38 @@ def plot_residuals(result, out_dir: str | Path) -> list[str]:
     ax.legend(loc="upper right")
     written.append(str(_save(fig, out_dir / f"{name}-residual-vs-distance.png", dpi=110)))
     return written
+
+
+def plot_comparison(comparison, path: str | Path, labels: tuple[str, str] = ("A", "B")) -> Path:
+    """Disagreement maps of two calibrations, one row per depth plane.
+
+    Columns: ``|q_B - q_A|`` in the left and in the right half, px, and the normalised
+    length difference ``(L_B - L_A) / sigma`` of the segment, each at the grid point's
+    left-half pixel (:class:`endomeasure.measure.compare.Comparison`).
+    """
+    plt = _pyplot()
+    c = comparison
+    n = c.depths.size
+    fig, axes = plt.subplots(n, 3, figsize=(11.5, 2.9 * n), squeeze=False)
+    maps = (
+        ("left |q_B - q_A| [px]", np.linalg.norm(c.diff_left, axis=1), "viridis"),
+        ("right |q_B - q_A| [px]", np.linalg.norm(c.diff_right, axis=1), "viridis"),
+        (f"(L_B - L_A) / sigma, {c.size_mm:g} mm segment", c.z, "coolwarm"),
+    )
+    for col, (title, values, cmap) in enumerate(maps):
+        finite = values[np.isfinite(values)]
+        top = float(np.max(np.abs(finite))) if finite.size else 1.0
+        top = top if top > 0 else 1.0
+        lo = -top if cmap == "coolwarm" else 0.0
+        for k, depth in enumerate(c.depths):
+            ax = axes[k, col]
+            sel = (c.depth_index == k) & np.isfinite(values)
+            sc = ax.scatter(c.pixels[sel, 0], c.pixels[sel, 1], c=values[sel], s=14, cmap=cmap,
+                            vmin=lo, vmax=top)  # fmt: skip
+            ax.invert_yaxis()
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.set_title(f"{title}, z = {depth:g} mm", fontsize=8)
+            ax.tick_params(labelsize=7)
+        fig.colorbar(sc, ax=axes[:, col].tolist(), shrink=0.8)
+    fig.suptitle(f"{labels[1]} against {labels[0]}, over {labels[0]}'s left half [px]", fontsize=10)
+    return _save(fig, path)
