@@ -205,6 +205,28 @@ def write_section(name: str, body: str, doc: Path) -> None:
     print(body)
 
 
+def session_state(path: Path, old: bytes, is_new: Callable[[object], bool]) -> str:
+    """What a command left of a session it edited (fault-injection scripts): ``old`` (byte
+    for byte), ``new`` (its checksum matches and ``is_new(open session)`` sees the
+    command's additions) or what is wrong."""
+    from endomeasure.errors import SessionError
+    from endomeasure.io.session import open_session
+
+    if not path.exists():
+        return "session missing"
+    if path.read_bytes() == old:
+        return "old"
+    try:
+        with open_session(path) as s:
+            if s.checksum != "ok":
+                return "new without checksum"
+            if not is_new(s):
+                return "changed without the command's additions"
+    except SessionError as exc:
+        return f"unreadable: {exc.what}"
+    return "new"
+
+
 def median_time(fn: Callable[[], object], runs: int = 5) -> float:
     """Median wall time of ``fn()`` over ``runs`` calls after one warm-up call, s."""
     fn()

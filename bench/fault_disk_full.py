@@ -13,7 +13,8 @@ whose checksum matches and which holds what the command adds) or exit 2 with exa
 `error:` line and the old session byte for byte; never print a traceback or crash on a
 signal; and leave no temporary file.
 
-Trials go to ``WORK/disk_full.jsonl`` as they finish. Writes the "disk-full" section of
+Trials go to ``WORK/disk_full.jsonl`` as they finish (``--rows`` that file writes the
+section again without running them). Writes the "disk-full" section of
 docs/robustness.md unless ``--no-write``; exits 3 when a trial broke the contract.
 """
 
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -33,7 +35,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from _common import Report, Target, script_parser  # noqa: E402
+from _common import Report, Target, script_parser, session_state  # noqa: E402
 
 ROBUSTNESS = ROOT / "docs" / "robustness.md"
 SECTION = "disk-full"
@@ -103,27 +105,12 @@ def fill(path: Path, leave: int) -> None:
                 return
 
 
-def state_of(path: Path, old: bytes, command: str) -> str:
-    """'old' (byte for byte), 'new' (checksum ok, the command's additions there) or what
-    is wrong."""
-    from endomeasure.errors import SessionError
-    from endomeasure.io.session import open_session
-
-    if not path.exists():
-        return "session missing"
-    if path.read_bytes() == old:
-        return "old"
-    try:
-        with open_session(path) as s:
-            if s.checksum != "ok":
-                return "new without checksum"
-            if command == "calibrate" and "pinhole" not in s.model_names():
-                return "changed without the model"
-            if command != "calibrate" and len(s.image_names()) <= 3:
-                return "changed without the images"
-    except SessionError as exc:
-        return f"unreadable: {exc.what}"
-    return "new"
+def additions(command: str):
+    """What a session must hold after ``command`` completed: the model it calibrated, or
+    more than the three images of the starting session."""
+    if command == "calibrate":
+        return lambda s: "pinhole" in s.model_names()
+    return lambda s: len(s.image_names()) > 3
 
 
 def trial(point: Path, command: str, base: Path, argv: list[str], rng, concurrent: bool,
@@ -155,7 +142,7 @@ def trial(point: Path, command: str, base: Path, argv: list[str], rng, concurren
             error=lines[-1] if done.returncode == 2 else "",
             one_line=len(lines) == 1 and lines[0].startswith("error:"),
             traceback="Traceback" in done.stderr or "bug" in done.stderr,
-            state=state_of(session, old, command),
+            state=session_state(session, old, additions(command)),
             temps=[p.name for p in point.iterdir() if p.name.endswith(".endomeasure-tmp")],
         )
         completed = row["state"] == "new" and row["exit"] == roomy.returncode
@@ -166,39 +153,50 @@ def trial(point: Path, command: str, base: Path, argv: list[str], rng, concurren
         umount(point)
 
 
+def run_trials(work: Path, trials: int, seed: int) -> list[dict]:
+    """Every trial, each also appended to ``WORK/disk_full.jsonl`` as it ends."""
+    commands = prepare(work / "bases")
+    rng = np.random.default_rng(seed)
+    point = work / "mnt"
+    rows = []
+    with (work / "disk_full.jsonl").open("w") as out:
+        for command, (base, command_argv) in commands.items():
+            # one run with room: how big its new session is and how long it takes
+            probe = work / "probe.h5"
+            shutil.copyfile(base, probe)
+            start = time.perf_counter()
+            roomy = endomeasure(*(a.replace("{S}", str(probe)) for a in command_argv), check=True)
+            duration = time.perf_counter() - start
+            needed = probe.stat().st_size
+            for index in range(trials):
+                concurrent = index % 2 == 1
+                row = trial(point, command, base, command_argv, rng, concurrent, roomy, needed,
+                            duration)  # fmt: skip
+                out.write(json.dumps(row) + "\n")
+                out.flush()
+                rows.append(row)
+    return rows
+
+
 def main(argv=None) -> int:
     parser = script_parser(__doc__, seed=0, work=True)
     parser.add_argument("--trials", type=int, default=20, help="per command")
+    parser.add_argument("--rows", type=Path, help="write the section from the trials of an "
+                        "earlier run (its disk_full.jsonl) instead of running them")  # fmt: skip
     args = parser.parse_args(argv)
     if args.quick:
         args.trials = 2
-    if os.geteuid() != 0:
+    report = Report("bench/fault_disk_full.py", args, ROBUSTNESS)
+    if args.rows is not None:
+        rows = [json.loads(line) for line in args.rows.read_text().splitlines() if line]
+    elif os.geteuid() != 0:
         print("bench/fault_disk_full.py: skipped, mounting a tmpfs needs root", file=sys.stderr)
         return 0
-    report = Report("bench/fault_disk_full.py", args, ROBUSTNESS)
-    work = args.work or Path(tempfile.mkdtemp(prefix="disk-full-"))
-    work.mkdir(parents=True, exist_ok=True)
-    commands = prepare(work / "bases")
-    rng = np.random.default_rng(args.seed)
-    point = work / "mnt"
-    out = (work / "disk_full.jsonl").open("w")
-    rows = []
-    for command, (base, command_argv) in commands.items():
-        # one run with room: how big its new session is and how long it takes
-        probe = work / "probe.h5"
-        shutil.copyfile(base, probe)
-        start = time.perf_counter()
-        roomy = endomeasure(*(a.replace("{S}", str(probe)) for a in command_argv), check=True)
-        duration = time.perf_counter() - start
-        needed = probe.stat().st_size
-        for index in range(args.trials):
-            concurrent = index % 2 == 1
-            row = trial(point, command, base, command_argv, rng, concurrent, roomy, needed,
-                        duration)  # fmt: skip
-            out.write(json.dumps(row) + "\n")
-            out.flush()
-            rows.append(row)
-    out.close()
+    else:
+        work = args.work or Path(tempfile.mkdtemp(prefix="disk-full-"))
+        work.mkdir(parents=True, exist_ok=True)
+        rows = run_trials(work, args.trials, args.seed)
+    commands = list(dict.fromkeys(r["command"] for r in rows))
 
     broken = sum(not r["ok"] for r in rows)
     check = report.check(TARGET, broken)
@@ -210,8 +208,16 @@ def main(argv=None) -> int:
             f"| {command} | {len(sub)} | {sum(r['state'] == 'new' for r in sub)} "
             f"| {sum(r['state'] == 'old' for r in sub)} | {sum(not r['ok'] for r in sub)} |"
         )
-    messages = sorted({r["error"].split(" [")[0] for r in rows if r["error"]})
-    listed = "\n".join(f"- `{m}`" for m in messages)
+    shapes: dict[str, list[str]] = {}
+    for r in rows:
+        if r["error"]:
+            message = r["error"].split(" [")[0]
+            shapes.setdefault(re.sub(r"\d+(\.\d+)?", "N", message), []).append(message)
+    listed = "\n".join(
+        f"- {len(seen)} trials: `{seen[0]}`" + (" (and the same with other figures)"
+                                                 if len(set(seen)) > 1 else "")
+        for seen in sorted(shapes.values(), key=len, reverse=True)
+    )  # fmt: skip
     command_line = f"sudo python bench/fault_disk_full.py --trials {args.trials} --seed {args.seed}"
     body = f"""Command: `{command_line}`
 ({args.trials} trials per command, half with a random amount of free space, half with the

@@ -37,7 +37,10 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from _common import Report, Target, script_parser  # noqa: E402
+from _common import Report, Target, script_parser, session_state  # noqa: E402
+
+sys.path.insert(0, str(ROOT))  # for tests.processes
+from tests.processes import alive_in_group  # noqa: E402
 
 ROBUSTNESS = ROOT / "docs" / "robustness.md"
 SECTION = "interrupts"
@@ -105,25 +108,6 @@ def prepare(work: Path) -> dict:
     }
 
 
-def _stat(pid: int) -> list[str] | None:
-    try:
-        text = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return None
-    return text[text.rindex(")") + 2 :].split()
-
-
-def alive_in_group(pgid: int) -> list[int]:
-    """Processes of the group still running (zombies are dead, only not yet reaped)."""
-    alive = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            fields = _stat(int(entry))
-            if fields is not None and int(fields[2]) == pgid and fields[0] != "Z":
-                alive.append(int(entry))
-    return alive
-
-
 SIGTERM_BIT = 1 << (signal.SIGTERM - 1)
 
 
@@ -142,27 +126,6 @@ def wait_until_handled(proc: subprocess.Popen) -> float | None:
             return time.monotonic()
         time.sleep(0.001)
     return None
-
-
-def state_of(path: Path, old: bytes, is_new) -> str:
-    """'old' (byte for byte), 'new' (checksum ok, the command's additions there) or what
-    is wrong."""
-    from endomeasure.errors import SessionError
-    from endomeasure.io.session import open_session
-
-    if not path.exists():
-        return "session missing"
-    if path.read_bytes() == old:
-        return "old"
-    try:
-        with open_session(path) as s:
-            if s.checksum != "ok":
-                return "new without checksum"
-            if not is_new(s):
-                return "changed without the command's additions"
-    except SessionError as exc:
-        return f"unreadable: {exc.what}"
-    return "new"
 
 
 def trial(work: Path, base: Path, argv: list[str], is_new, signum: int, delay: float,
@@ -207,7 +170,7 @@ def trial(work: Path, base: Path, argv: list[str], is_new, signum: int, delay: f
         "error_lines": errors,
         "last_line": lines[-1] if lines else "",
         "traceback": "Traceback" in err or "bug" in err,
-        "state": state_of(session, old, is_new),
+        "state": session_state(session, old, is_new),
         "temps": sorted(p.name for p in folder.iterdir() if p.name.endswith(TMP_SUFFIX)),
         "orphans": orphans,
         "stderr_tail": err[-1500:],

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import pytest
+from tests.processes import alive_in_group, children, cpu_seconds, proc_stat
 
 from endomeasure import interrupts
 from endomeasure.io.outputs import SESSION_TMP_SUFFIX
@@ -45,7 +46,6 @@ GROUP_GONE_S = 5.0
 """How long the processes of an interrupted command may take to be gone (they take ms)."""
 CALIBRATING_CPU_S = 1.5
 """CPU time after which ``calibrate`` is fitting (its imports and reads take well under)."""
-CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
 
 # ------------------------------------------------------------------------- the world
@@ -91,41 +91,6 @@ def _start(*args: str, **kwargs) -> subprocess.Popen:
 
 
 # ------------------------------------------------------------------- what /proc shows
-
-
-def _stat(pid: int) -> list[str] | None:
-    """The fields of /proc/PID/stat after the command name (state first), or None."""
-    try:
-        text = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return None
-    return text[text.rindex(")") + 2 :].split()
-
-
-def _cpu_s(pid: int) -> float:
-    fields = _stat(pid)
-    return 0.0 if fields is None else (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
-
-
-def _alive_in_group(pgid: int) -> list[int]:
-    """Processes of the group that still run (zombies are dead, waiting to be reaped)."""
-    alive = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            fields = _stat(int(entry))
-            if fields is not None and int(fields[2]) == pgid and fields[0] != "Z":
-                alive.append(int(entry))
-    return alive
-
-
-def _children(pid: int) -> list[int]:
-    kids = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            fields = _stat(int(entry))
-            if fields is not None and int(fields[1]) == pid and fields[0] != "Z":
-                kids.append(int(entry))
-    return kids
 
 
 def _open_files(pid: int) -> list[str]:
@@ -179,7 +144,7 @@ def _temp_files(session: Path) -> list[str]:
 
 def _wait_group_gone(pgid: int) -> list[int]:
     deadline = time.monotonic() + GROUP_GONE_S
-    while (alive := _alive_in_group(pgid)) and time.monotonic() < deadline:
+    while (alive := alive_in_group(pgid)) and time.monotonic() < deadline:
         time.sleep(0.02)
     return alive
 
@@ -307,8 +272,8 @@ def test_a_signal_while_add_images_edits_gives_the_old_or_the_new_session(world,
 
 
 def _workers_busy(pid: int) -> bool:
-    workers = _children(pid)
-    return len(workers) >= 2 and all(_cpu_s(w) > 0.2 for w in workers)
+    workers = children(pid)
+    return len(workers) >= 2 and all(cpu_seconds(w) > 0.2 for w in workers)
 
 
 def _detected(session: Path) -> bool:
@@ -327,7 +292,7 @@ def test_a_signal_while_detect_works_ends_its_workers(world, tmp_path, signum, t
         "detect", str(session), str(world["board_images"]), "--board", BOARD, "--workers", "2"
     )
     _wait_for(proc, lambda: _workers_busy(proc.pid), "its workers detect")
-    workers = _children(proc.pid)
+    workers = children(proc.pid)
     started = time.monotonic()
     if to_group:
         os.killpg(proc.pid, signum)
@@ -335,7 +300,7 @@ def test_a_signal_while_detect_works_ends_its_workers(world, tmp_path, signum, t
         os.kill(proc.pid, signum)
     assert check_interrupted(proc, signum, session, None, _detected) == "old"
     assert time.monotonic() - started < GROUP_GONE_S  # not after the running tasks
-    assert [w for w in workers if _stat(w) is not None and _stat(w)[0] != "Z"] == []
+    assert [w for w in workers if proc_stat(w) is not None and proc_stat(w)[0] != "Z"] == []
 
 
 def test_workers_die_when_detect_is_killed(world, tmp_path):
@@ -359,7 +324,7 @@ def test_a_signal_while_calibrate_fits_leaves_the_session(world, tmp_path, signu
     shutil.copyfile(world["detected"], session)
     before = _sha(session)
     proc = _start("calibrate", str(session))
-    _wait_for(proc, lambda: _cpu_s(proc.pid) > CALIBRATING_CPU_S, "it fits")
+    _wait_for(proc, lambda: cpu_seconds(proc.pid) > CALIBRATING_CPU_S, "it fits")
     os.killpg(proc.pid, signum)
     assert check_interrupted(proc, signum, session, before, lambda s: False) == "old"
 

@@ -518,6 +518,15 @@ SigmaOption = Annotated[
     ),
 ]
 
+BoardOption = Annotated[
+    str,
+    typer.Option(
+        "--board",
+        help="Board spec: chessboard:COLSxROWS:SQUARE_MM (inner corners) or "
+        "charuco:SQUARES_XxSQUARES_Y:SQUARE_MM:MARKER_MM:DICT.",
+        show_default=False,
+    ),
+]
 JsonOption = Annotated[
     bool, typer.Option("--json", help="Print one JSON document on stdout instead of tables.")
 ]
@@ -851,15 +860,7 @@ def detect(
             show_default=False,
         ),
     ],
-    board: Annotated[
-        str,
-        typer.Option(
-            "--board",
-            help="Board spec: chessboard:COLSxROWS:SQUARE_MM (inner corners) or "
-            "charuco:SQUARES_XxSQUARES_Y:SQUARE_MM:MARKER_MM:DICT.",
-            show_default=False,
-        ),
-    ],
+    board: BoardOption,
     image_set: Annotated[
         str, typer.Option("--set", help="Image set: calib, test or scene.")
     ] = "calib",
@@ -1817,14 +1818,7 @@ def verify(
             show_default=False,
         ),
     ],
-    board: Annotated[
-        str,
-        typer.Option(
-            "--board",
-            help="Board spec: chessboard:COLSxROWS:SQUARE_MM (inner corners) or "
-            "charuco:SQUARES_XxSQUARES_Y:SQUARE_MM:MARKER_MM:DICT.",
-        ),
-    ],
+    board: BoardOption,
     model: Annotated[str, typer.Option("--model", help="Calibrated model.")] = "raytrace",
     json_output: JsonOption = False,
 ) -> None:

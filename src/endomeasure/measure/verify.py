@@ -70,8 +70,20 @@ two collinear segments ``x1 - x0`` and ``x2 - x1`` with independent end points c
 by ``-1/2``; measurements at right angles share less."""
 
 
+class _Test:
+    """A test passes when its p-value ``p`` is at least its significance level ``alpha``
+    (fields of the dataclasses below)."""
+
+    @property
+    def passed(self) -> bool:
+        return bool(self.p >= self.alpha)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**dataclasses.asdict(self), "passed": self.passed}
+
+
 @dataclasses.dataclass(frozen=True)
-class BiasTest:
+class BiasTest(_Test):
     """The mean relative length error against its predicted standard deviation.
 
     ``mean_relative`` and ``predicted_std``: fractions (0.005 is 0.5 %); ``z`` their ratio,
@@ -87,16 +99,9 @@ class BiasTest:
     p: float
     alpha: float
 
-    @property
-    def passed(self) -> bool:
-        return bool(self.p >= self.alpha)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {**dataclasses.asdict(self), "passed": self.passed}
-
 
 @dataclasses.dataclass(frozen=True)
-class DispersionTest:
+class DispersionTest(_Test):
     """The sum of squared normalised errors against its predicted distribution.
 
     ``rms_z`` is ``sqrt(q / n)``; ``dof`` the effective degrees of freedom of ``q``
@@ -112,13 +117,6 @@ class DispersionTest:
     p: float
     alpha: float
     rms_z_limit: float
-
-    @property
-    def passed(self) -> bool:
-        return bool(self.p >= self.alpha)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {**dataclasses.asdict(self), "passed": self.passed}
 
 
 @dataclasses.dataclass(frozen=True)
