@@ -52,6 +52,7 @@ ACCURACY_RUNS := \
 	"bench/accuracy_rotation.py --poses 24 --designs 10 --seed 0" \
 	"bench/fault_bitflips.py $(ACCURACY_WORK)/accuracy.h5 --work $(ACCURACY_WORK)/bitflips" \
 	"bench/fault_disk_full.py --work $(ACCURACY_WORK)/disk_full" \
+	"bench/fault_limits.py --work $(ACCURACY_WORK)/limits" \
 	"bench/fault_interrupts.py --work $(ACCURACY_WORK)/interrupts"
 
 bench: install

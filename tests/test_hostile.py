@@ -18,10 +18,8 @@ import hashlib
 import json
 import os
 import shutil
-import struct
 import subprocess
 import sys
-import zlib
 from pathlib import Path
 
 import cv2
@@ -29,11 +27,11 @@ import h5py
 import numpy as np
 import pytest
 from tests.conftest import make_raytrace_model
+from tests.hostile_data import crafted, png_header_only, replace_image, run_measured
 from tests.pipeline.measure_data import BOARD, board_points, build_session
 from typer.testing import CliRunner
 
 from endomeasure import cli, defaults
-from endomeasure.io.integrity import seal_file
 
 runner = CliRunner()
 
@@ -42,44 +40,6 @@ MAX_REFUSAL_RSS_MB = 300
 
 
 # ----------------------------------------------------------------------------- the world
-
-
-def _png_header_only(path: Path, width: int, height: int, iccp: bool = False) -> None:
-    """A grey PNG of ``width`` x ``height``: whole for small sizes, otherwise with a stub
-    of data, as the size must be refused from the header before a decoder would
-    allocate the pixels. ``iccp`` adds a colour profile too short for libpng, which
-    then warns on the process's stderr."""
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        crc = zlib.crc32(kind + data) & 0xFFFFFFFF
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", crc)
-
-    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
-    rows = height if width * height <= 1 << 20 else 1
-    idat = zlib.compress((b"\x00" + b"\x80" * width) * rows)
-    profile = chunk(b"iCCP", b"bogus\x00\x00" + zlib.compress(b"short")) if iccp else b""
-    path.write_bytes(
-        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + profile + chunk(b"IDAT", idat)
-        + chunk(b"IEND", b"")
-    )  # fmt: skip
-
-
-def _crafted(source: Path, target: Path, edit) -> Path:
-    shutil.copyfile(source, target)
-    with h5py.File(target, "r+") as h5:
-        edit(h5)
-    seal_file(target)  # crafted by someone who knows the format: its checksum matches
-    return target
-
-
-def _replace_image(h5, name: str, shape, dtype) -> None:
-    attrs = dict(h5["images"][name].attrs)
-    del h5["images"][name]
-    dset = h5["images"].create_dataset(
-        name, shape=shape, dtype=dtype, chunks=(64, 64) + shape[2:], compression="gzip"
-    )
-    for key, value in attrs.items():
-        dset.attrs[key] = value
 
 
 def _huge_detection(h5) -> None:
@@ -112,31 +72,31 @@ def world(tmp_path_factory):
         h5["x"] = np.arange(3)
     head = session.read_bytes()
     (data / "cut.h5").write_bytes(head[: len(head) // 3])
-    _crafted(session, data / "future.h5", lambda h5: h5.attrs.__setitem__("format_version", "9.0"))
-    _crafted(
+    crafted(session, data / "future.h5", lambda h5: h5.attrs.__setitem__("format_version", "9.0"))
+    crafted(
         session,
         data / "huge-meta.h5",
         lambda h5: h5["metadata"].attrs.__setitem__("image_size", np.array([64000, 48000])),
     )
-    _crafted(
+    crafted(
         session,
         data / "split.h5",
         lambda h5: h5["metadata"].attrs.__setitem__("split", 5000),
     )
-    _crafted(
+    crafted(
         session,
         data / "huge-image.h5",
-        lambda h5: _replace_image(h5, "scene", (48000, 64000), "u1"),
+        lambda h5: replace_image(h5, "scene", (48000, 64000), "u1"),
     )
-    _crafted(session, data / "shape.h5", lambda h5: _replace_image(h5, "scene", (480, 320), "u1"))
-    _crafted(session, data / "float.h5", lambda h5: _replace_image(h5, "scene", (480, 640), "f8"))
-    _crafted(session, data / "huge-detection.h5", _huge_detection)
-    _crafted(
+    crafted(session, data / "shape.h5", lambda h5: replace_image(h5, "scene", (480, 320), "u1"))
+    crafted(session, data / "float.h5", lambda h5: replace_image(h5, "scene", (480, 640), "f8"))
+    crafted(session, data / "huge-detection.h5", _huge_detection)
+    crafted(
         session,
         data / "variance.h5",
         lambda h5: h5["models"]["raytrace"].attrs.__setitem__("residual_variance", "big"),
     )
-    _crafted(
+    crafted(
         session,
         data / "bytes.h5",
         lambda h5: h5.attrs.__setitem__("created_by", np.bytes_(b"\xff\xfe endomeasure")),
@@ -154,14 +114,14 @@ def world(tmp_path_factory):
     (images / "clip.avi").write_bytes(b"RIFF not a video")
     big = images / "big"
     big.mkdir()
-    _png_header_only(big / "huge.png", 30000, 30000)
-    _png_header_only(images / "wide.png", defaults.MAX_IMAGE_SIDE + 1, 8)
+    png_header_only(big / "huge.png", 30000, 30000)
+    png_header_only(images / "wide.png", defaults.MAX_IMAGE_SIDE + 1, 8)
     small = images / "small"
     small.mkdir()
     cv2.imwrite(str(small / "s.png"), np.full((24, 32), 128, np.uint8))
     warns = images / "warns"  # a PNG whose bad colour profile makes libpng warn on stderr
     warns.mkdir()
-    _png_header_only(warns / "w.png", 32, 24, iccp=True)
+    png_header_only(warns / "w.png", 32, 24, iccp=True)
     flat = images / "flat"
     flat.mkdir()
     cv2.imwrite(str(flat / "f.png"), np.full((480, 640), 128, np.uint8))
@@ -784,25 +744,6 @@ def _run_module(*args: str) -> subprocess.CompletedProcess:
     )
 
 
-_PEAK_RSS = """
-import resource, subprocess, sys
-done = subprocess.run([sys.executable, "-m", "endomeasure", *sys.argv[1:]], capture_output=True,
-                      text=True)
-sys.stdout.write(str(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) + "\\n")
-sys.stderr.write(done.stderr)
-sys.exit(done.returncode)
-"""
-
-
-def _run_measured(*args: str) -> tuple[subprocess.CompletedProcess, float]:
-    """Run the command line in a fresh process; its result and its peak memory, MB (a
-    wrapper process has it as its only child, so no other test's child counts)."""
-    result = subprocess.run(
-        [sys.executable, "-c", _PEAK_RSS, *args], capture_output=True, text=True, timeout=60
-    )
-    return result, int(result.stdout.split()[-1]) / 1024  # ru_maxrss is in kB on Linux
-
-
 @pytest.mark.parametrize(
     "args",
     [
@@ -814,7 +755,7 @@ def _run_measured(*args: str) -> tuple[subprocess.CompletedProcess, float]:
     ids=["png-add-images", "png-detect", "crafted-session-image"],
 )  # fmt: skip
 def test_huge_images_are_refused_in_a_small_process(world, args):
-    result, peak_mb = _run_measured(*[a.format(**world) for a in args])
+    result, peak_mb = run_measured(*[a.format(**world) for a in args])
     assert result.returncode == 2
     errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and "beyond the limit" in errors[0], result.stderr

@@ -786,10 +786,14 @@ class Session:
 
     @_translating_errors
     def image_info(self, name: str) -> ImageInfo:
+        """The description of one image, whose declared shape and type must be those of
+        an image of this session (checked from the metadata, no pixel read)."""
         nodes = self._image_nodes()
         if name not in nodes:
             raise _not_found("image", name, nodes, str(self.path))
-        return self._image_info(name, nodes[name])
+        dset = nodes[name]
+        self._check_image_shape(name, dset.shape, dset.dtype)
+        return self._image_info(name, dset)
 
     @_translating_errors
     def image(self, name: str) -> np.ndarray:

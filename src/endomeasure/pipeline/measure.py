@@ -410,13 +410,15 @@ def measure_points(
 
     request = _checked_request(kind, left, right, warn_percent, plot)
     n = _check_count(request, kind)  # before any image is read
-    if request.search:
-        from endomeasure.measure.correspondence import MatchSettings
-
-        MatchSettings(patch=patch)  # the patch size checked before any work
     plot = _checked_plot(plot, session, store)
     with open_session(session) as reader:
-        reader.image_info(image)  # an unknown image is a BadInputError listing the images
+        # an unknown image is a BadInputError listing the images, an impossible one (its
+        # declared shape) a SessionError: both before the search's imports and any work
+        reader.image_info(image)
+        if request.search:
+            from endomeasure.measure.correspondence import MatchSettings
+
+            MatchSettings(patch=patch)  # the patch size checked before any work
         cm = calibrated_model(reader, model_name, session)
         image_pixels = reader.image(image) if request.search else None
     ql, qr, matches, written = _pixel_pairs(cm, request, image_pixels, patch, plot)
