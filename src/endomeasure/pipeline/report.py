@@ -256,21 +256,24 @@ def _board_test_section(reader, session: str, models: Sequence[str]) -> dict[str
     if not names:
         return {"missing": f"no board test yet: run `endomeasure measure {session} --board-test "
                            "--model all` (needs test images: `detect ... --set test`)"}  # fmt: skip
-    results, zone_mm, rows = {}, None, []
+    results, zone_mm, rows = {}, None, {}
     for name in names:
         record = reader.record(BOARD_TEST_RECORD, name)
         results[name] = ModelBoardTest.from_fields(board_test_fields(record))
         zone_mm = float(record.attrs.get("zone_mm", defaults.ZONE_MM))
         s = results[name].summary
         for k in range(len(s.kind)):
-            rows.append({
-                "model": name, "board": str(results[name].summary_board[k]),
-                "kind": str(s.kind[k]), "zone_start": float(s.zone_start[k]),
-                "zone_end": float(s.zone_end[k]), "n": int(s.n[k]),
-                "mean": _finite(s.mean_error[k]), "std": _finite(s.std_error[k]),
-            })  # fmt: skip
+            key = (name, str(results[name].summary_board[k]), float(s.zone_start[k]),
+                   float(s.zone_end[k]))  # fmt: skip
+            row = rows.setdefault(key, dict(zip(("model", "board", "zone_start", "zone_end"),
+                                                key, strict=True), kinds={}))  # fmt: skip
+            row["kinds"][str(s.kind[k])] = {
+                "n": int(s.n[k]), "mean": _finite(s.mean_error[k]), "std": _finite(s.std_error[k])
+            }  # fmt: skip
     figure = png_bytes(plot_board_test, results, zone_mm)
-    return {"zone_mm": zone_mm, "rows": rows, "figure": _b64(figure)}
+    kinds = list(dict.fromkeys(k for r in rows.values() for k in r["kinds"]))
+    return {"zone_mm": zone_mm, "rows": list(rows.values()), "kinds": kinds,
+            "figure": _b64(figure)}  # fmt: skip
 
 
 def _predicted_section(reader, session: str) -> dict[str, Any]:
