@@ -212,7 +212,7 @@ def detection_noise(session: Path, data: Path, zone_mm: float | None = None) -> 
     return result
 
 
-def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int, min_n: int = 0) -> dict:
+def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int) -> dict:
     """What a perfect model and a perfect noise prediction give on this test set.
 
     The simulator's *truth* optics measure the test set's *true* corner pixels plus
@@ -221,8 +221,7 @@ def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int, min_n
     exact). Whatever such a run misses of the issue 7 and 8 targets is the sampling error
     of the zone statistics and the estimator's own noise-induced bias, which no model and
     no prediction can remove. Returns, per (board, zone), the issue 7 figures of every
-    run, and per run the zones (those with at least ``min_n`` measurements), those within
-    +-25 % and those with >= 90 % in the band.
+    run, and per run the zones, those within +-25 % and those with >= 90 % in the band.
     """
     from endomeasure.measure.board_runs import prediction_zones, run_board_test
     from endomeasure.measure.predict import ImageNoise
@@ -255,11 +254,8 @@ def perfect_reference(data: Path, groups: dict, zone_mm: float, reps: int, min_n
             p = preds[key]
             zones = prediction_zones(bt, p, zone_mm)
             rows += [
-                z
-                for z in zones
-                if z["board"] == key[0] and abs(z["zone_start"] - key[1]) < 1e-9
-                and z["n"] >= min_n
-            ]  # fmt: skip
+                z for z in zones if z["board"] == key[0] and abs(z["zone_start"] - key[1]) < 1e-9
+            ]
         _, ok_std, ok_band = zone_verdicts(rows)
         counts.append((len(rows), ok_std, ok_band))
         for z in rows:
