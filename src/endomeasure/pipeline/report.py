@@ -315,7 +315,7 @@ def _measurements_section(reader, session: str) -> dict[str, Any]:
         })  # fmt: skip
     if not rows:
         return {"missing": f"no measurements yet: `endomeasure measure {session} --image NAME "
-                           "--points U,V ...`"}  # fmt: skip
+                           "--kind length --left U,V --left U,V`"}  # fmt: skip
     return {"rows": rows}
 
 
