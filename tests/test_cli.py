@@ -501,3 +501,14 @@ def test_measure_help_paragraphs_are_reflowed_to_the_width():
             assert len(line) + 1 + len(next_word) > 100 - 4, (line, following)
             checked += 1
     assert checked >= 3  # the measure description wraps over several lines
+
+
+def test_no_help_text_is_cut_at_80_columns():
+    """Every command's help, piped at 80 columns, shows its words whole (rich cuts a word
+    longer than its cell with an ellipsis)."""
+    commands = [c.name for c in cli.app.registered_commands]
+    assert {"report", "verify", "compare"} <= set(commands)
+    for name in commands:
+        result = runner.invoke(cli.app, [name, "-h"], env={"COLUMNS": "80"})
+        assert result.exit_code == 0, name
+        assert ELLIPSIS not in result.stdout, name

@@ -523,7 +523,7 @@ BoardOption = Annotated[
     typer.Option(
         "--board",
         help="Board spec: chessboard:COLSxROWS:SQUARE_MM (inner corners) or "
-        "charuco:SQUARES_XxSQUARES_Y:SQUARE_MM:MARKER_MM:DICT.",
+        "charuco:SXxSY:SQUARE_MM:MARKER_MM:DICT (SX, SY: squares).",
         show_default=False,
     ),
 ]
