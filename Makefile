@@ -44,6 +44,7 @@ ACCURACY_RUNS := \
 	"bench/match_precision.py" \
 	"bench/accuracy_designs.py --work $(ACCURACY_WORK)/designs --jobs 2" \
 	"bench/noise_designs.py $(ACCURACY_WORK)/designs" \
+	"bench/zone_spread_designs.py $(ACCURACY_WORK)/designs" \
 	"bench/misfit_designs.py $(ACCURACY_WORK)/designs --default $(ACCURACY_WORK)/accuracy.h5" \
 	"bench/operator_designs.py $(ACCURACY_WORK)/designs" \
 	"bench/figure5.py $(ACCURACY_WORK)/accuracy.h5 $(ACCURACY_WORK)/designs/design_005.h5" \
