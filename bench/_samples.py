@@ -23,11 +23,15 @@ SETS = ("calib", "test")
 HALVES = ("left", "right")
 
 
-def endomeasure(*args, check: bool = True) -> subprocess.CompletedProcess:
-    """Run the ``endomeasure`` command line (exit codes 0 and 1 are results)."""
+def endomeasure(
+    *args, check: bool = True, timeout: float | None = None, env: dict | None = None
+) -> subprocess.CompletedProcess:
+    """Run the ``endomeasure`` command line (exit codes 0 and 1 are results; with
+    ``check``, another one ends the script with the command's stderr)."""
     out = subprocess.run(
-        [sys.executable, "-m", "endomeasure", *map(str, args)], capture_output=True, text=True
-    )
+        [sys.executable, "-m", "endomeasure", *map(str, args)], capture_output=True, text=True,
+        timeout=timeout, env=env,
+    )  # fmt: skip
     if check and out.returncode not in (0, 1):
         sys.exit(f"failed: endomeasure {' '.join(map(str, args))}\n{out.stderr}")
     return out

@@ -36,6 +36,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 from _common import Report, Target, script_parser, session_state  # noqa: E402
+from _samples import endomeasure  # noqa: E402
 
 ROBUSTNESS = ROOT / "docs" / "robustness.md"
 SECTION = "disk-full"
@@ -44,16 +45,6 @@ TARGET = Target("disk-full trials that broke the contract", "==", 0, "", "issue 
 IMAGES = 6
 """Calibration images per board used here: enough for a pinhole calibration, few enough
 that each trial takes seconds."""
-
-
-def endomeasure(*args: str, timeout: float = 600, check: bool = False):
-    done = subprocess.run(
-        [sys.executable, "-m", "endomeasure", *args], capture_output=True, text=True,
-        timeout=timeout,
-    )  # fmt: skip
-    if check and done.returncode not in (0, 1):
-        raise RuntimeError(f"endomeasure {args[0]} failed: {done.stderr.strip()}")
-    return done
 
 
 def prepare(work: Path) -> dict:
@@ -133,7 +124,8 @@ def trial(point: Path, command: str, base: Path, argv: list[str], rng, concurren
             leave = int(rng.uniform(0, 1.5 * needed))
             row["free_bytes"] = leave
             fill(filler, leave)
-        done = endomeasure(*(a.replace("{S}", str(session)) for a in argv))
+        done = endomeasure(*(a.replace("{S}", str(session)) for a in argv), check=False,
+                           timeout=600)  # fmt: skip
         if concurrent:
             timer.join()
         lines = done.stderr.strip().splitlines()

@@ -38,6 +38,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 from _common import Report, Target, script_parser, session_state  # noqa: E402
+from _samples import endomeasure as run_endomeasure  # noqa: E402
 
 sys.path.insert(0, str(ROOT))  # for tests.processes
 from tests.processes import alive_in_group  # noqa: E402
@@ -59,13 +60,8 @@ TMP_SUFFIX = ".endomeasure-tmp"
 
 
 def endomeasure(*args: str, check: bool = False) -> subprocess.CompletedProcess:
-    done = subprocess.run(
-        [sys.executable, "-m", "endomeasure", *args], capture_output=True, text=True,
-        env=ENV, timeout=900,
-    )  # fmt: skip
-    if check and done.returncode not in (0, 1):
-        raise RuntimeError(f"endomeasure {args[0]} failed: {done.stderr.strip()}")
-    return done
+    """The command line of this checkout (``ENV``), as :func:`_samples.endomeasure` runs it."""
+    return run_endomeasure(*args, check=check, timeout=900, env=ENV)
 
 
 def prepare(work: Path) -> dict:
