@@ -129,7 +129,8 @@ def section(rows: dict, designs: str, extra: dict) -> str:
         "",
         "Per design with a significant misfit, and the default preset: misfit / noise (px, RMS "
         "over halves and coordinates), the misfit's correlation between the halves (u, v) and "
-        "kernel lengths (ring / decay, px); then without and with the term: errors inside the "
+        "kernel per coordinate (ring / decay, px, and stretch across it); then without and with "
+        "the term: errors inside the "
         "2-sigma band, zones within +-25 %, median actual / predicted std.",
         "",
         "| case | misfit / noise px | rho halves u, v | kernel px | band without | zones | "
@@ -139,7 +140,10 @@ def section(rows: dict, designs: str, extra: dict) -> str:
     cases = {f"design {s}": r for s, r in sorted(significant.items())} | extra
     for name, r in cases.items():
         rho = ", ".join(f"{v:+.2f}" for v in r["misfit_rho_halves"])
-        kernel = " / ".join(f"{v:.0f}" for v in r["misfit_kernel_px"])
+        ring, decay = (np.broadcast_to(v, (2,)) for v in r["misfit_kernel_px"])
+        stretch = np.broadcast_to(r.get("misfit_kernel_stretch", 1.0), (2,))
+        kernel = ", ".join(f"{c} {ring[k]:.0f} / {decay[k]:.0f} x{stretch[k]:.2g}"
+                           for k, c in enumerate("uv"))  # fmt: skip
         lines.append(
             f"| {name} | {r['misfit_px']:.4f} / {r['noise_px']:.4f} | {rho} | {kernel} | "
             f"{_cells(r)} |"

@@ -33,7 +33,34 @@ def test_field_variance_is_the_misfit_and_noise_the_rest():
     # the right half's field is the left one's, negated: correlation -1
     assert np.all(m.rho_halves < -0.8)
     # the field decorrelates over a quarter wavelength, not over a corner spacing
-    assert m.ring_px > SPACING
+    assert np.all(m.ring_px > SPACING)
+
+
+def test_a_misfit_along_its_own_coordinate_stretches_the_kernel_across_it():
+    """A radial-like misfit (the u error a function of u alone, the v error of v alone, as
+    a scale or distortion error makes it) is shared by points above one another in u and
+    side by side in v: the fitted kernels stretch across their coordinate, and the
+    misfit of a vertical pair's u difference is predicted far below a horizontal pair's."""
+    rng = np.random.default_rng(6)
+    X, image, half, q, _ = board_residuals(rng, field_l=0.0, field_r=0.0)
+    local = q - np.where(half[:, None] == 1, 320.0, 0.0)
+    phase = rng.uniform(0, 2 * np.pi, (image.max() + 1, 2))[image]
+    field = AMPLITUDE * np.sin(2 * np.pi * local / 80.0 + phase)  # u(u), v(v)
+    r = field + rng.normal(0, NOISE, field.shape)
+    m = fit_misfit(X, image, half, q, r)
+    assert np.all(m.stretch >= 4)
+    np.testing.assert_allclose(m.std, AMPLITUDE / np.sqrt(2), rtol=0.15)
+    apart = 4 * SPACING
+    for c in range(2):
+        cov_along = m.covariance(np.array([[100.0, 100.0], [100.0, 100.0] + _axis(c) * apart]))
+        cov_across = m.covariance(np.array([[100.0, 100.0], [100.0, 100.0] + _axis(1 - c) * apart]))
+        var_along = cov_along[c, c] + cov_along[4 + c, 4 + c] - 2 * cov_along[c, 4 + c]
+        var_across = cov_across[c, c] + cov_across[4 + c, 4 + c] - 2 * cov_across[c, 4 + c]
+        assert var_across < 0.2 * var_along
+
+
+def _axis(c: int) -> np.ndarray:
+    return np.eye(2)[c]
 
 
 def test_noise_the_two_views_share_is_not_a_misfit():
