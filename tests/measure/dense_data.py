@@ -1,7 +1,7 @@
 """A textured plane rendered through a known model: ground truth for the dense search.
 
 Every pixel of both halves samples, at its centre ray, a smooth random texture on the
-plane ``z = depth`` (sinusoids of 0.4-1.5 mm wavelength: 5-20 px at 18 mm for a 230 px focal length),
+plane ``z = depth`` (sinusoids of 0.4-1.5 mm wavelength: 5-20 px at 18 mm for fx 230 px),
 plus seeded Gaussian noise, quantised to 8 bits. The truth is the plane, never the code
 under test.
 """
