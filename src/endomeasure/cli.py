@@ -1559,6 +1559,60 @@ def _render_board_test(console: Console, report: Any) -> None:
         console.print(f"plot: {report.plot}")
 
 
+@command("surface")
+def surface_command(
+    session: Annotated[Path, typer.Argument(help="Session file (.h5).", show_default=False)],
+    image: Annotated[str, typer.Option("--image", help="Name of the image.", show_default=False)],
+    region: Annotated[
+        str | None,
+        typer.Option("--region", help="Left-half region U0,V0,U1,V1 px (default: the half)."),
+    ] = None,
+    model: Annotated[str, typer.Option("--model", help="Calibrated model.")] = "raytrace",
+    ply: Annotated[
+        Path | None, typer.Option("--ply", help="Write the point cloud (binary PLY).")
+    ] = None,
+    plot: Annotated[
+        Path | None,
+        typer.Option("--plot", help="PNG: shaded depth and the red/yellow/green mask."),
+    ] = None,
+    window: Annotated[
+        int, typer.Option("--window", help="Correlation window side, px (odd).")
+    ] = defaults.PATCH_PX,
+    wait_s: WaitOption = defaults.LOCK_WAIT_S,
+    json_output: JsonOption = False,
+) -> None:
+    """Dense 3D of a region: depth per left pixel with its sigma, stored in the session.
+
+    Pixels that cannot be measured (untextured, not seen by the right half, occluded or
+    inconsistent) are marked, not guessed. The record ``surface/IMAGE.MODEL`` holds the
+    depth map, its sigma and the status per pixel.
+    """
+    from endomeasure.pipeline.surface import check_region_text, surface
+
+    report = surface(session, image, model, check_region_text(region), ply=ply, plot=plot,
+                     window_px=window)  # fmt: skip
+    if json_output:
+        _print_json(report.to_dict())
+        return
+    console = _stderr_console()
+    u0, v0, u1, v1 = report.region
+    console.print(
+        f"{report.image} ({report.model}), region {u0},{v0},{u1},{v1}: depth for "
+        f"{report.measured} of {report.pixels} px ({100 * report.measured / report.pixels:.1f} %), "
+        f"median z {report.median_depth_mm:.3f} mm +- {report.median_sigma_mm:.4f} mm (1 sigma); "
+        f"{report.seconds:.1f} s",
+        markup=False,
+    )
+    refused = ", ".join(f"{k} {v}" for k, v in report.counts.items() if k != "ok" and v)
+    console.print(f"no depth: {refused or 'none'}", markup=False)
+    console.print("mask: " + ", ".join(f"{k} {v}" for k, v in report.classes.items()), markup=False)
+    if report.record:
+        console.print(f"stored as records/surface/{report.record}", markup=False)
+    for what, path in (("point cloud", report.ply), ("plot", report.plot)):
+        if path:
+            console.print(f"{what}: {path}", markup=False)
+
+
 @command("predict-error")
 def predict_error(
     ctx: typer.Context,

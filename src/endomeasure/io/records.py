@@ -42,6 +42,9 @@ __all__ = [
     "model_from_record",
     "next_measurement_name",
     "stored_measurement",
+    "SURFACE_RECORD",
+    "surface_record",
+    "surface_record_name",
 ]
 
 MEASUREMENT_RECORD = "measurement"
@@ -604,3 +607,40 @@ def board_attrs(spec) -> tuple[dict[str, Any], dict[str, str]]:
         )
         units["marker_mm"] = "mm"
     return attrs, units
+
+
+# ----- dense surfaces written by `surface` ---------------------------------------------------
+
+SURFACE_RECORD = "surface"
+
+
+def surface_record_name(image: str, model: str) -> str:
+    """The ``surface`` record of an image and model: one per pair, replaced on rerun."""
+    return f"{image}.{model}"
+
+
+def surface_record(
+    name: str, surface, *, image: str, model: str, attrs: Mapping[str, Any]
+) -> Record:
+    """The ``records/surface/<name>`` entry of a dense surface (``DenseSurface``).
+
+    Arrays over the region's rows and columns: ``depth`` and ``sigma_depth`` (float32,
+    mm, NaN without depth), ``status`` (uint8, ``DenseStatus``), ``score`` (ZNCC,
+    float32), ``right`` (matched right pixel, float32, px); ``region`` (u0, v0, u1, v1).
+    """
+    arrays = {
+        "region": np.asarray(surface.region, dtype=np.int32),
+        "depth": surface.depth.astype(np.float32),
+        "sigma_depth": surface.sigma_depth.astype(np.float32),
+        "status": surface.status.astype(np.uint8),
+        "score": np.nan_to_num(surface.score, nan=-2.0).astype(np.float32),
+        "right": surface.right.astype(np.float32),
+    }
+    units = {"depth": "mm", "sigma_depth": "mm", "right": "px", "region": "px"}
+    return Record(
+        SURFACE_RECORD,
+        name,
+        attrs={"image": image, "model": model, **dict(attrs)},
+        arrays=arrays,
+        units=units,
+    )

@@ -143,6 +143,7 @@ __all__ = [
     "find_match",
     "find_matches",
     "estimate_noise",
+    "match_precision",
     "MIN_SCORE",
     "MAX_SECOND_RATIO",
     "MAX_PRECISION_PX",
@@ -759,25 +760,32 @@ def _interpolated_noise_correlation(positions: np.ndarray) -> float:
     return float(np.mean(rows))
 
 
-def _match_precision(
-    energy_t: float, n: int, gain: float, noise_ref: float, noise_t: float, misfit: float,
-    correlation: float,
-) -> float:  # fmt: skip
+def match_precision(energy_t, n, gain, noise_ref, noise_t, misfit, correlation) -> np.ndarray:
     """Predicted standard deviation of the matched pixel along the curve, px of the
-    searched half (see the module notes, *Precision*).
+    searched half (see the module notes, *Precision*); vectorised over its arguments.
 
     ``energy_t`` is the signal's derivative energy along the curve in the searched half
     (grey levels^2 / px^2, over ``n`` samples), ``gain`` the brightness ratio of the
     halves, ``noise_ref`` and ``noise_t`` the noise of the reference and searched half,
     ``misfit`` the two patches' difference beyond noise per sample
     (:func:`_measured_misfit`) and ``correlation`` from
-    :func:`_interpolated_noise_correlation`.
+    :func:`_interpolated_noise_correlation`. Returns ``inf`` where ``energy_t`` is not
+    positive. The dense search (:mod:`endomeasure.measure.dense`) uses it per pixel.
     """
-    if not energy_t > 0:
-        return np.inf
-    first = (gain**2 * noise_ref**2 + correlation * noise_t**2) / energy_t
-    second = n * _spline_derivative_noise() * noise_t**2 / energy_t
-    return float(np.sqrt(first * (1.0 + second) + misfit**2 / energy_t))
+    energy = np.asarray(energy_t, dtype=np.float64)
+    ok = energy > 0
+    safe = np.where(ok, energy, 1.0)
+    first = (gain**2 * noise_ref**2 + correlation * noise_t**2) / safe
+    second = n * _spline_derivative_noise() * noise_t**2 / safe
+    return np.where(ok, np.sqrt(first * (1.0 + second) + misfit**2 / safe), np.inf)
+
+
+def _match_precision(
+    energy_t: float, n: int, gain: float, noise_ref: float, noise_t: float, misfit: float,
+    correlation: float,
+) -> float:  # fmt: skip
+    """:func:`match_precision` for one match, as a float."""
+    return float(match_precision(energy_t, n, gain, noise_ref, noise_t, misfit, correlation))
 
 
 def _search_direction(search: _Search, index: int) -> np.ndarray | None:

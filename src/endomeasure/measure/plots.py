@@ -393,3 +393,45 @@ def plot_comparison(comparison, path: str | Path, labels: tuple[str, str] = ("A"
         fig.colorbar(sc, ax=axes[:, col].tolist(), shrink=0.8)
     fig.suptitle(f"{labels[1]} against {labels[0]}, over {labels[0]}'s left half [px]", fontsize=10)
     return _save(fig, path)
+
+
+_MASK_COLOURS = {0: (0.1, 0.75, 0.2), 1: (0.95, 0.8, 0.1), 2: (0.85, 0.1, 0.1)}
+"""The surface picture's mask: green accurate, yellow inaccurate, red not measurable."""
+
+
+def plot_surface(surface, classes: np.ndarray, path: str | Path, title: str = "") -> Path:
+    """The shaded depth picture of a dense surface with its red/yellow/green mask.
+
+    Left: the depth map, hill-shaded (light from the top left) and coloured by z; pixels
+    without depth are shown red. Right: the mask over the grey image (green: the 2-sigma
+    error within the first trust band, yellow: within the warning, red: no depth).
+    """
+    plt = _pyplot()
+    depth = surface.depth
+    u0, v0, u1, v1 = surface.region
+    extent = (u0 - 0.5, u1 - 0.5, v1 - 0.5, v0 - 0.5)
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    gy, gx = np.gradient(np.where(np.isfinite(depth), depth, np.nanmedian(depth)))
+    shade = np.clip(0.6 + 4.0 * (gx + gy), 0.0, 1.0)
+    from matplotlib import cm, colors
+
+    finite = np.isfinite(depth)
+    lo, hi = np.nanpercentile(depth, [1, 99]) if finite.any() else (0.0, 1.0)
+    norm = colors.Normalize(lo, hi)
+    rgb = cm.viridis(norm(np.nan_to_num(depth, nan=lo)))[..., :3] * shade[..., None]
+    rgb[~finite] = _MASK_COLOURS[2]
+    axes[0].imshow(rgb, extent=extent)
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap="viridis"), ax=axes[0], label="z (mm)")
+    axes[0].set_title("depth, shaded (red: no depth)")
+    grey = surface.grey / max(float(np.max(surface.grey)), 1.0)
+    overlay = np.repeat(grey[..., None], 3, axis=-1) * 0.55
+    for level, colour in _MASK_COLOURS.items():
+        overlay[classes == level] += 0.45 * np.asarray(colour)
+    axes[1].imshow(np.clip(overlay, 0, 1), extent=extent)
+    axes[1].set_title("mask: green accurate, yellow inaccurate, red not measurable")
+    for ax in axes:
+        ax.set_xlabel("u (px)")
+        ax.set_ylabel("v (px)")
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path)

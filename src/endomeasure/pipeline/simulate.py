@@ -117,16 +117,19 @@ def _noise_rng(seed: int, set_name: str, index: int):
 def _remove_stale(folder: Path, set_name: str) -> None:
     """Delete earlier renders of a set, so a smaller run leaves no foreign images behind."""
     for path in folder.glob(f"{set_name}_*"):
-        if path.suffix in (".png", ".json") and path.is_file():
+        if (path.suffix in (".png", ".json") or path.name.endswith(".depth.npy")) and (
+            path.is_file()
+        ):
             path.unlink()
 
 
 def _render_shot(loaded, set_name: str, shot, folder: Path, seed: int, noise_free: bool):
     """Render one image with its truth file; its manifest entry."""
     import cv2
+    import numpy as np
 
     from endomeasure.simulate.render import render
-    from endomeasure.simulate.truth import image_truth
+    from endomeasure.simulate.truth import DEPTH_SUFFIX, image_truth, true_depth
 
     rng = None if noise_free else _noise_rng(seed, set_name, shot.index)
     result = render(loaded, shot.target, rng=rng, noise_free=noise_free)
@@ -140,8 +143,21 @@ def _render_shot(loaded, set_name: str, shot, folder: Path, seed: int, noise_fre
         "supersampling": f"{loaded.supersampling}x{loaded.supersampling}",
     }
     truth = image_truth(loaded, shot, png.name, info)
+    depth_file = None
+    if set_name == "scene":
+        depth_file = f"{shot.name}{DEPTH_SUFFIX}"
+        np.save(folder / depth_file, true_depth(loaded, shot.target), allow_pickle=False)
+        truth["depth_map"] = {
+            "file": depth_file,
+            "dtype": "float32",
+            "unit": "mm",
+            "meaning": "z in the camera frame of the first target point on each pixel "
+            "centre's ray through the truth optics; NaN: background or a failed ray",
+        }
     (folder / f"{shot.name}.json").write_text(json.dumps(truth, indent=1) + "\n")
     entry = {"image": f"{set_name}/{png.name}", "truth": f"{set_name}/{shot.name}.json"}
+    if depth_file is not None:
+        entry["depth"] = f"{set_name}/{depth_file}"
     if "board_spec" in truth:
         entry["board_spec"] = truth["board_spec"]
         entry["distance_mm"] = round(truth["distance_mm"], 4)

@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-__all__ = ["MANIFEST_NAME", "load_manifest", "board_groups", "load_truth"]
+__all__ = ["MANIFEST_NAME", "load_manifest", "board_groups", "load_truth", "load_true_depth"]
 
 MANIFEST_NAME = "simulation.json"
 
@@ -45,4 +45,25 @@ def load_truth(root: str | Path, image_name: str) -> dict[str, Any]:
         for item in entry.get("images", []):
             if Path(item["image"]).stem == image_name:
                 return json.loads((root / item["truth"]).read_text())
+    raise KeyError(f"no image {image_name!r} in the simulated set at {root}")
+
+
+def load_true_depth(root: str | Path, image_name: str):
+    """True depth map of a scene image by its stem, ndarray (H, W) float32 mm, NaN where
+    no target surface is seen (``docs/simulator.md``, "Ground truth JSON").
+
+    Raises
+    ------
+    KeyError
+        No such image, or it has no depth map (board images, or rendered before it).
+    """
+    import numpy as np
+
+    root = Path(root)
+    for entry in load_manifest(root)["sets"].values():
+        for item in entry.get("images", []):
+            if Path(item["image"]).stem == image_name:
+                if "depth" not in item:
+                    raise KeyError(f"image {image_name!r} has no true depth map in {root}")
+                return np.load(root / item["depth"], allow_pickle=False)
     raise KeyError(f"no image {image_name!r} in the simulated set at {root}")

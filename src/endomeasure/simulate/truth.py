@@ -29,7 +29,12 @@ __all__ = [
     "CHARUCO_CORNER_ID_RULE",
     "image_truth",
     "true_pixels",
+    "true_depth",
+    "DEPTH_SUFFIX",
 ]
+
+DEPTH_SUFFIX = ".depth.npy"
+"""File name ending of a scene image's true depth map (``scene_000.depth.npy``)."""
 
 TRUTH_FORMAT = "endomeasure-simulated-truth"
 TRUTH_VERSION = 1
@@ -66,6 +71,57 @@ def true_pixels(preset: Preset, points: np.ndarray) -> dict[str, list]:
             for q, s in zip(proj.pixels, proj.status, strict=True)
         ]
     return out
+
+
+def true_depth(preset: Preset, target, region=None) -> np.ndarray:
+    """True depth of every pixel: z of the first scene surface its centre ray meets.
+
+    Parameters
+    ----------
+    preset : Preset
+        Its ground-truth optics trace the rays (never a fitted model).
+    target : Chessboard, CharucoBoard or MetalCylinder
+        The posed scene object (anything with the renderer's ``hit(o, d)``).
+    region : Region, optional
+        Full-image pixel rectangle; the default is the whole image.
+
+    Returns
+    -------
+    ndarray, shape (H, W), float32, mm
+        z in the camera frame (``docs/conventions.md``: the real camera's, which the
+        ``raytrace`` model shares) of the point where the ray of the pixel centre meets
+        the target, in both halves; NaN where the ray misses the target (the background)
+        or fails in the optics.
+
+    Notes
+    -----
+    One ray per pixel through its centre (:func:`~endomeasure.simulate.optics.ray_bundle`
+    with one sample), traced in float64 here: the rendered pixel integrates its
+    sub-pixel samples, so at a depth edge the truth is the centre's surface.
+    """
+    from endomeasure.simulate.optics import Region
+
+    optics = preset.truth_optics
+    region = region or Region.full(preset.image_size)
+    region.check(optics.config.image_size)
+    uu, vv = np.meshgrid(
+        np.arange(region.u0, region.u1, dtype=np.float64),
+        np.arange(region.v0, region.v1, dtype=np.float64),
+    )
+    depth = np.full(uu.shape, np.nan)
+    for half in Half:
+        mask = (uu < optics.config.split) if half is Half.LEFT else (uu >= optics.config.split)
+        if not mask.any():
+            continue
+        rays = optics.rays(np.stack([uu[mask], vv[mask]], axis=-1), half)
+        ok = rays.status == Status.OK
+        o = tuple(np.where(ok, rays.origins[:, k], 0.0) for k in range(3))
+        d = tuple(np.where(ok, rays.directions[:, k], 0.0) for k in range(3))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            hit = target.hit(o, d)
+            z = o[2] + hit.t * d[2]
+        depth[mask] = np.where(ok & hit.hit, z, np.nan)
+    return depth.astype(np.float32)
 
 
 def _pose(R: np.ndarray, t: np.ndarray) -> dict[str, Any]:

@@ -1,0 +1,575 @@
+"""Dense correspondence of a frame: a depth, its sigma and a status for every left pixel.
+
+For every left-half pixel of a region the surface point it sees is found along its own
+ray, for any model (only :meth:`CameraModel.rays` and :meth:`CameraModel.project` are
+used), so the ``raytrace`` model's curved epipolar lines need no rectification.
+
+Method
+------
+1. **Plane sweep (coarse).** Depth levels uniform in inverse depth ``w = 1/z`` over the
+   depth range, so dense that a level moves the other half's pixel by at most
+   ``coarse_step_px``. For each level the map ``q_right(q_left, w)`` of the constant-z
+   plane is computed exactly on a grid of left pixels (every ``grid_px``) and
+   interpolated in between; the right half is warped into the left half's pixels by it
+   and compared with zero-mean normalised cross-correlation (ZNCC) over a square window
+   (box filters). The best level per pixel and a parabola through its neighbours give the
+   coarse depth. The same sweep from the right half gives its own coarse depth map, for
+   the left-right check.
+2. **Refinement along the true curve.** Around each pixel's coarse depth (smoothed by a
+   median, so that a window follows the surface's slope), the right half is sampled
+   (cubic B-spline) at the *exact* projections of every pixel's ray point at
+   ``fine_steps`` sub-levels per coarse level; the ZNCC peak and a parabola give the
+   depth. The 3D point is the left ray's point at that depth, which by construction is
+   where the two rays meet (the match lies on the curve).
+3. **Precision.** The match's standard deviation along the curve (px) is the operator
+   search's formula (:func:`~endomeasure.measure.correspondence.match_precision`) from
+   the warped window's derivative energy along the curve tangent, both halves' noise and
+   the window's misfit; divided by ``|dq/dw|`` it is the sigma of ``w``, carried to ``z``
+   by the unscented transform (:func:`~endomeasure.solvers.uncertainty.unscented`,
+   vectorised over pixels). Calibration uncertainty is not included.
+4. **Refusals** (:class:`DenseStatus`), never a guessed depth: the other half does not
+   see the window at any depth (``NOT_SEEN``), the predicted precision is worse than
+   :data:`~endomeasure.measure.correspondence.MAX_PRECISION_PX` (``UNTEXTURED``), the
+   ZNCC is below :data:`~endomeasure.measure.correspondence.MIN_SCORE`
+   (``LOW_SCORE``), the peak sits at an end of the depth range (``AT_RANGE_END``), or the
+   right half's own depth at the matched pixel disagrees (``INCONSISTENT``: occlusion or
+   a wrong peak).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+
+from endomeasure import defaults
+from endomeasure.conventions import Half
+from endomeasure.errors import BadInputError
+from endomeasure.interpolation import spline_coefficients, spline_sample
+from endomeasure.measure.correspondence import (
+    MAX_PRECISION_PX,
+    MIN_SCORE,
+    estimate_noise,
+    match_precision,
+)
+from endomeasure.measure.epipolar import DEPTH_RANGE_MM
+
+if TYPE_CHECKING:
+    from endomeasure.models.base import CameraModel
+
+__all__ = [
+    "DenseSettings",
+    "DenseStatus",
+    "DenseSurface",
+    "dense_surface",
+    "check_region",
+    "accuracy_classes",
+]
+
+_PROBE_LEVELS = 33
+"""Levels of the first pass that measures how far the right pixel moves over the range."""
+_TANGENT_STEP = 1e-3
+"""Relative step of inverse depth for the curve tangent ``dq/dw`` (central difference)."""
+
+
+class DenseStatus(enum.IntEnum):
+    """Why a pixel has no depth (0: it has one)."""
+
+    OK = 0
+    NOT_SEEN = 1
+    UNTEXTURED = 2
+    LOW_SCORE = 3
+    AT_RANGE_END = 4
+    INCONSISTENT = 5
+
+    @property
+    def label(self) -> str:
+        return self.name.lower().replace("_", "-")
+
+
+@dataclasses.dataclass(frozen=True)
+class DenseSettings:
+    """Settings of :func:`dense_surface`.
+
+    Attributes
+    ----------
+    window_px : int
+        Side of the square ZNCC window (odd), px.
+    depth_range_mm : (float, float)
+        Nearest and farthest depth searched, mm.
+    coarse_step_px : float
+        Largest move of the right pixel between two sweep levels, px.
+    fine_steps : int
+        Sub-levels per coarse level in the refinement.
+    fine_reach : float
+        The refinement searches this many coarse levels either side of the coarse depth.
+    grid_px : int
+        Spacing of the left pixels where the sweep's plane maps are computed exactly.
+    consistency_levels : float
+        Largest difference of the left and right coarse depths, in coarse levels.
+    smooth_px : int
+        Side of the median that smooths the coarse depth before the refinement (odd).
+    """
+
+    window_px: int = defaults.PATCH_PX
+    depth_range_mm: tuple[float, float] = DEPTH_RANGE_MM
+    coarse_step_px: float = 1.0
+    fine_steps: int = 4
+    fine_reach: float = 1.5
+    grid_px: int = 4
+    consistency_levels: float = 2.0
+    smooth_px: int = 5
+
+    def __post_init__(self):
+        if self.window_px < 3 or self.window_px % 2 == 0:
+            raise BadInputError(
+                f"the window must be an odd number >= 3 of px, not {self.window_px}"
+            )
+        near, far = self.depth_range_mm
+        if not 0 < near < far:
+            raise BadInputError(f"depth range {near}-{far} mm is not 0 < near < far")
+
+
+class DenseSurface(NamedTuple):
+    """The dense result over a region of the left half (arrays (h, w) over the region).
+
+    ``depth`` and ``sigma_depth`` are z and its 1-sigma in the model frame (mm, NaN
+    where ``status`` is not OK); ``points`` (h, w, 3) mm; ``sigma_point`` the 1-sigma
+    of the point along its ray, mm; ``right`` (h, w, 2) the matched right pixel;
+    ``precision_px`` the match's sigma along the curve; ``score`` the ZNCC; ``grey``
+    the left image's values; ``status`` :class:`DenseStatus` codes (uint8).
+    """
+
+    region: tuple[int, int, int, int]  # u0, v0, u1, v1: columns u0 <= u < u1
+    depth: np.ndarray
+    sigma_depth: np.ndarray
+    points: np.ndarray
+    sigma_point: np.ndarray
+    right: np.ndarray
+    precision_px: np.ndarray
+    score: np.ndarray
+    grey: np.ndarray
+    status: np.ndarray
+    noise: tuple[float, float]  # per half, grey levels
+    levels: int  # coarse sweep levels
+
+
+def check_region(model: CameraModel, region: tuple[int, int, int, int] | None, window: int):
+    """The region (u0, v0, u1, v1) clipped to the left half; refused when empty.
+
+    ``None`` is the whole left half. Columns ``u0 <= u < u1``, rows ``v0 <= v < v1``.
+    """
+    width, height = model.config.image_size
+    split = model.config.split
+    if region is None:
+        region = (0, 0, split, height)
+    u0, v0, u1, v1 = (int(x) for x in region)
+    if not (u0 < u1 and v0 < v1):
+        raise BadInputError(f"region {u0},{v0},{u1},{v1} is empty (need U0 < U1, V0 < V1)")
+    if u0 >= split or u1 <= 0 or v1 <= 0 or v0 >= height:
+        raise BadInputError(
+            f"region {u0},{v0},{u1},{v1} lies outside the left half (columns 0-{split - 1}, "
+            f"rows 0-{height - 1})",
+            hint="give the region in left-half full-image pixels",
+        )
+    clipped = (max(0, u0), max(0, v0), min(split, u1), min(height, v1))
+    if clipped[2] - clipped[0] < window or clipped[3] - clipped[1] < window:
+        raise BadInputError(
+            f"region {u0},{v0},{u1},{v1} leaves less than one {window} px window inside the "
+            "left half"
+        )
+    return clipped
+
+
+# ----- the plane maps ---------------------------------------------------------------------
+
+
+def _ray_points(rays, w: np.ndarray) -> np.ndarray:
+    """Points of rays (..., 3) at inverse depths ``w`` (broadcast), z = 1/w, (..., 3)."""
+    t = (1.0 / w - rays.origins[..., 2]) / rays.directions[..., 2]
+    return rays.origins + t[..., None] * rays.directions
+
+
+def _grid(lo: int, hi: int, step: int) -> np.ndarray:
+    """Nodes from ``lo`` to ``hi - 1`` inclusive every ``step`` (the last one added)."""
+    nodes = np.arange(lo, hi, step, dtype=np.float64)
+    return nodes if nodes[-1] == hi - 1 else np.append(nodes, hi - 1)
+
+
+class _Frame(NamedTuple):
+    """A reference window of the image: where its pixels are and their rays."""
+
+    u0: int
+    v0: int
+    u1: int
+    v1: int
+    ref: Half
+
+
+def _plane_maps(model, frame: _Frame, w: np.ndarray, grid_px: int):
+    """Other-half pixel of every reference pixel on each constant-z plane, (K, h, w, 2)
+    float32, interpolated bilinearly from exact projections on a grid (NaN: not seen)."""
+    import cv2
+
+    gu = _grid(frame.u0, frame.u1, grid_px)
+    gv = _grid(frame.v0, frame.v1, grid_px)
+    nodes = np.stack(np.meshgrid(gu, gv), axis=-1)  # (gh, gw, 2)
+    rays = model.rays(nodes, frame.ref)
+    other = Half.RIGHT if frame.ref is Half.LEFT else Half.LEFT
+    proj = model.project(_ray_points(rays, w[:, None, None]), other)
+    field = proj.pixels.astype(np.float32)  # (K, gh, gw, 2), NaN where not OK
+    uu = np.arange(frame.u0, frame.u1, dtype=np.float64)
+    vv = np.arange(frame.v0, frame.v1, dtype=np.float64)
+    # fractional grid coordinates of every pixel (nodes are uniform but for the last one)
+    mx = np.interp(uu, gu, np.arange(gu.size)).astype(np.float32)
+    my = np.interp(vv, gv, np.arange(gv.size)).astype(np.float32)
+    map_x, map_y = np.meshgrid(mx, my)
+    out = np.empty((w.size, map_x.shape[0], map_x.shape[1], 2), dtype=np.float32)
+    for k in range(w.size):
+        out[k] = cv2.remap(
+            field[k], map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
+    return out
+
+
+def _levels(model, frame: _Frame, settings: DenseSettings) -> np.ndarray:
+    """Inverse depths of the sweep, uniform, ``coarse_step_px`` apart at the fastest pixel."""
+    near, far = settings.depth_range_mm
+    probe = np.linspace(1.0 / far, 1.0 / near, _PROBE_LEVELS)
+    grid = max(settings.grid_px * 8, 16)
+    gu = _grid(frame.u0, frame.u1, grid)
+    gv = _grid(frame.v0, frame.v1, grid)
+    rays = model.rays(np.stack(np.meshgrid(gu, gv), -1), frame.ref)
+    other = Half.RIGHT if frame.ref is Half.LEFT else Half.LEFT
+    q = model.project(_ray_points(rays, probe[:, None, None]), other).pixels
+    step = np.linalg.norm(np.diff(q, axis=0), axis=-1)  # (K-1, gh, gw)
+    rate = np.nanmax(step) if np.isfinite(step).any() else 0.0
+    count = int(np.ceil(rate * (_PROBE_LEVELS - 1) / settings.coarse_step_px)) + 1
+    return np.linspace(1.0 / far, 1.0 / near, max(count, 3))
+
+
+# ----- correlation ------------------------------------------------------------------------
+
+
+def _box(x: np.ndarray, window: int) -> np.ndarray:
+    import cv2
+
+    return cv2.boxFilter(
+        x, cv2.CV_64F, (window, window), normalize=True, borderType=cv2.BORDER_REFLECT
+    )
+
+
+class _RefStats(NamedTuple):
+    mean: np.ndarray
+    var: np.ndarray
+    grey: np.ndarray
+
+
+def _ref_stats(grey: np.ndarray, window: int) -> _RefStats:
+    mean = _box(grey, window)
+    return _RefStats(mean, np.maximum(_box(grey * grey, window) - mean * mean, 0.0), grey)
+
+
+def _zncc(ref: _RefStats, warped: np.ndarray, window: int):
+    """ZNCC of the reference windows with the warped other half (NaN where any sample of
+    the window is missing), the fit gain ``cov / var_other`` and ``var_other``."""
+    seen = np.isfinite(warped)
+    filled = np.where(seen, warped, 0.0)
+    complete = _box(seen.astype(np.float64), window) > 1.0 - 1e-9
+    m = _box(filled, window)
+    var = np.maximum(_box(filled * filled, window) - m * m, 0.0)
+    cov = _box(ref.grey * filled, window) - ref.mean * m
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ncc = cov / np.sqrt(ref.var * var)
+        gain = cov / var
+    ncc[~complete] = np.nan
+    return ncc, gain, var
+
+
+def _parabola(y_minus, y0, y_plus) -> np.ndarray:
+    """Vertex offset in (-0.5, 0.5) of the parabola through three equally spaced values."""
+    den = y_minus - 2.0 * y0 + y_plus
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = 0.5 * (y_minus - y_plus) / den
+    return np.where(np.isfinite(s) & (den < 0), np.clip(s, -0.5, 0.5), 0.0)
+
+
+class _Coarse(NamedTuple):
+    w: np.ndarray  # (h, w) inverse depth, NaN where none
+    status: np.ndarray  # (h, w) uint8
+
+
+def _coarse(model, grey, frame: _Frame, levels: np.ndarray, settings: DenseSettings) -> _Coarse:
+    """Plane sweep of one reference window: best level per pixel, sub-level parabola."""
+    import cv2
+
+    split = model.config.split
+    other = grey.copy()
+    if frame.ref is Half.LEFT:
+        other[:, :split] = np.nan
+    else:
+        other[:, split:] = np.nan
+    other = other.astype(np.float32)
+    ref = _ref_stats(grey[frame.v0 : frame.v1, frame.u0 : frame.u1], settings.window_px)
+    maps = _plane_maps(model, frame, levels, settings.grid_px)
+    volume = np.full((levels.size, *maps.shape[1:3]), np.nan, dtype=np.float32)
+    for k in range(levels.size):
+        mx = np.nan_to_num(maps[k, ..., 0], nan=-1e6)
+        my = np.nan_to_num(maps[k, ..., 1], nan=-1e6)
+        warped = cv2.remap(other, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                           borderValue=float("nan"))  # fmt: skip
+        volume[k] = _zncc(ref, warped.astype(np.float64), settings.window_px)[0]
+    seen = np.isfinite(volume).any(axis=0)
+    best = np.argmax(np.nan_to_num(volume, nan=-2.0), axis=0)
+    rows, cols = np.indices(best.shape)
+    y0 = volume[best, rows, cols]
+    y_minus = volume[np.maximum(best - 1, 0), rows, cols]
+    y_plus = volume[np.minimum(best + 1, levels.size - 1), rows, cols]
+    end = ~np.isfinite(y_minus) | ~np.isfinite(y_plus) | (best == 0) | (best == levels.size - 1)
+    frac = best + _parabola(y_minus, y0, y_plus)
+    w = np.interp(frac, np.arange(levels.size), levels)
+    status = np.full(best.shape, DenseStatus.OK, dtype=np.uint8)
+    status[end] = DenseStatus.AT_RANGE_END
+    status[~seen] = DenseStatus.NOT_SEEN
+    w[status != DenseStatus.OK] = np.nan
+    return _Coarse(w, status)
+
+
+def _median_filled(w: np.ndarray, size: int) -> np.ndarray:
+    """Median of ``w`` over valid neighbours (NaN ignored), invalid pixels kept NaN."""
+    from scipy.ndimage import median_filter
+
+    valid = np.isfinite(w)
+    if not valid.any():
+        return w
+    # invalid pixels take the median of the valid ones, so they neither win nor lose
+    filled = np.where(valid, w, np.nanmedian(w))
+    return np.where(valid, median_filter(filled, size=size, mode="nearest"), np.nan)
+
+
+# ----- the whole search -------------------------------------------------------------------
+
+
+def dense_surface(
+    model: CameraModel,
+    image: np.ndarray,
+    region: tuple[int, int, int, int] | None = None,
+    settings: DenseSettings | None = None,
+) -> DenseSurface:
+    """Depth, sigma and status of every left pixel of a region (see the module notes).
+
+    Parameters
+    ----------
+    model : CameraModel
+    image : ndarray, shape (H, W), grey levels
+        The whole split frame.
+    region : (u0, v0, u1, v1), optional
+        Left-half pixel rectangle (columns ``u0 <= u < u1``); default the whole half.
+    settings : DenseSettings, optional
+
+    Returns
+    -------
+    DenseSurface
+
+    Raises
+    ------
+    BadInputError
+        An image that does not fit the model or a region outside the left half.
+    """
+    from endomeasure.solvers.uncertainty import unscented
+
+    settings = settings or DenseSettings()
+    image = np.asarray(image)
+    width, height = model.config.image_size
+    if image.ndim != 2 or image.shape != (height, width):
+        raise BadInputError(
+            f"image of shape {image.shape} is not the model's {width}x{height} grey frame"
+        )
+    grey = image.astype(np.float64)
+    split = model.config.split
+    r = settings.window_px // 2
+    u0, v0, u1, v1 = check_region(model, region, settings.window_px)
+    noise = (
+        max(estimate_noise(grey[:, :split]), 1.0 / np.sqrt(12.0)),
+        max(estimate_noise(grey[:, split:]), 1.0 / np.sqrt(12.0)),
+    )
+    # the reference window: the region plus a window's margin (inside the half)
+    fu0, fv0 = max(0, u0 - r), max(0, v0 - r)
+    fu1, fv1 = min(split, u1 + r), min(height, v1 + r)
+    left = _Frame(fu0, fv0, fu1, fv1, Half.LEFT)
+    levels = _levels(model, left, settings)
+    coarse = _coarse(model, grey, left, levels, settings)
+    dw = levels[1] - levels[0]
+
+    # ----- refinement along each pixel's exact curve
+    uu, vv = np.meshgrid(
+        np.arange(fu0, fu1, dtype=np.float64), np.arange(fv0, fv1, dtype=np.float64)
+    )
+    rays = model.rays(np.stack([uu, vv], -1), Half.LEFT)
+    base = _median_filled(coarse.w, settings.smooth_px)
+    base = np.where(
+        np.isfinite(base), base, np.nanmedian(base) if np.isfinite(base).any() else levels.mean()
+    )
+    coeffs, origin = spline_coefficients(
+        grey, np.array([[split, 0], [width - 1, height - 1]], float), cols=(split, width - 1)
+    )
+    right_half = _RightHalf(coeffs, origin, split, width, height)
+    ref = _ref_stats(grey[fv0:fv1, fu0:fu1], settings.window_px)
+    w, fine_end = _refine(model, rays, base, ref, right_half, dw, settings)
+    q_r, score, precision, sigma_w = _match_at(model, rays, w, ref, right_half, noise, settings)
+    status = coarse.status.copy()
+    status[(status == DenseStatus.OK) & fine_end] = DenseStatus.AT_RANGE_END
+    status[(status == DenseStatus.OK) & ~np.isfinite(score)] = DenseStatus.NOT_SEEN
+    status[(status == DenseStatus.OK) & ~(precision <= MAX_PRECISION_PX)] = DenseStatus.UNTEXTURED
+    status[(status == DenseStatus.OK) & ~(score >= MIN_SCORE)] = DenseStatus.LOW_SCORE
+    _check_consistency(model, grey, status, q_r.pixels, w, levels, settings)
+
+    # ----- crop to the region, sigma of z by the unscented transform of w
+    inner = (slice(v0 - fv0, v1 - fv0), slice(u0 - fu0, u1 - fu0))
+    status = status[inner]
+    ok = status == DenseStatus.OK
+    w_in, s_in = w[inner], sigma_w[inner]
+    depth = np.full(status.shape, np.nan)
+    sigma_depth = np.full(status.shape, np.nan)
+    if ok.any():
+        prop = unscented(
+            lambda x: 1.0 / x[..., 0], w_in[ok][:, None], (s_in[ok] ** 2)[:, None, None]
+        )
+        depth[ok] = 1.0 / w_in[ok]
+        sigma_depth[ok] = prop.std
+    o, d = rays.origins[inner], rays.directions[inner]
+    with np.errstate(invalid="ignore"):
+        t = (depth - o[..., 2]) / d[..., 2]
+        points = o + t[..., None] * d
+        sigma_point = sigma_depth / np.abs(d[..., 2])
+    nan_where = ~ok
+    right_px = np.where(nan_where[..., None], np.nan, q_r.pixels[inner])
+    return DenseSurface(
+        region=(u0, v0, u1, v1),
+        depth=depth,
+        sigma_depth=sigma_depth,
+        points=points,
+        sigma_point=np.where(ok, sigma_point, np.nan),
+        right=right_px,
+        precision_px=np.where(np.isfinite(precision[inner]), precision[inner], np.nan),
+        score=score[inner],
+        grey=grey[v0:v1, u0:u1],
+        status=status,
+        noise=noise,
+        levels=int(levels.size),
+    )
+
+
+class _RightHalf(NamedTuple):
+    """The right half's spline interpolant."""
+
+    coeffs: np.ndarray
+    origin: np.ndarray
+    split: int
+    width: int
+    height: int
+
+    def sample(self, pixels, gradient=False):
+        return _sample_right(self.coeffs, self.origin, pixels, self.split, self.width,
+                             self.height, gradient=gradient)  # fmt: skip
+
+
+def _refine(model, rays, base, ref, right: _RightHalf, dw: float, settings: DenseSettings):
+    """Inverse depth per pixel from ZNCC at sub-levels around ``base`` along each exact
+    curve; and where the peak sits at an end of the sub-levels."""
+    n_fine = int(np.ceil(settings.fine_reach * settings.fine_steps))
+    offsets = np.arange(-n_fine, n_fine + 1) / settings.fine_steps * dw
+    fine = np.full((offsets.size, *base.shape), np.nan)
+    for j, dj in enumerate(offsets):
+        q = model.project(_ray_points(rays, base + dj), Half.RIGHT)
+        fine[j] = _zncc(ref, right.sample(q.pixels), settings.window_px)[0]
+    best = np.argmax(np.nan_to_num(fine, nan=-2.0), axis=0)
+    rows, cols = np.indices(best.shape)
+    y0 = fine[best, rows, cols]
+    y_minus = fine[np.maximum(best - 1, 0), rows, cols]
+    y_plus = fine[np.minimum(best + 1, offsets.size - 1), rows, cols]
+    # the window's best offset aligns the window on average: it adds to the window's mean
+    # base depth, not to the centre's own (whose deviation from that mean would enter whole)
+    w = _box(base, settings.window_px) + np.interp(
+        best + _parabola(y_minus, y0, y_plus), np.arange(offsets.size), offsets
+    )
+    fine_end = (best == 0) | (best == offsets.size - 1) | ~np.isfinite(y_minus + y_plus)
+    return w, fine_end
+
+
+def _match_at(model, rays, w, ref, right: _RightHalf, noise, settings: DenseSettings):
+    """The match at inverse depth ``w``: exact right pixel, ZNCC, precision along the
+    curve (px) and the sigma of ``w``."""
+    from endomeasure.measure.correspondence import _spline_derivative_noise
+
+    q_r = model.project(_ray_points(rays, w), Half.RIGHT)
+    plus = model.project(_ray_points(rays, w * (1 + _TANGENT_STEP)), Half.RIGHT).pixels
+    minus = model.project(_ray_points(rays, w * (1 - _TANGENT_STEP)), Half.RIGHT).pixels
+    dq_dw = (plus - minus) / (2.0 * _TANGENT_STEP * w[..., None])
+    rate = np.linalg.norm(dq_dw, axis=-1)  # px per unit inverse depth
+    tangent = dq_dw / rate[..., None]
+    values, gu, gv = right.sample(q_r.pixels, gradient=True)
+    score, gain, _ = _zncc(ref, values, settings.window_px)
+    n = settings.window_px**2
+    g = gu * tangent[..., 0] + gv * tangent[..., 1]
+    g_mean = _box(np.nan_to_num(g), settings.window_px)
+    energy = n * (_box(np.nan_to_num(g * g), settings.window_px) - g_mean**2)
+    # the derivative of the interpolated noisy image carries noise energy of its own
+    energy -= (n - 1) * _spline_derivative_noise() * noise[1] ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # the fit ref ~ gain * other + offset; its residual beyond the noise is the misfit
+        residual = ref.var * (1.0 - np.clip(score, -1, 1) ** 2) / gain**2
+        expected = noise[0] ** 2 / gain**2 + noise[1] ** 2
+        misfit = np.sqrt(np.maximum(residual - expected, 0.0))
+        precision = match_precision(energy, n, 1.0 / np.abs(gain), noise[0], noise[1], misfit, 1.0)
+        sigma_w = precision / rate
+    return q_r, score, precision, sigma_w
+
+
+def _check_consistency(model, grey, status, q_r, w, levels, settings: DenseSettings) -> None:
+    """Mark ``INCONSISTENT`` (in place) the OK pixels whose right match's own coarse
+    depth (the sweep from the right half) differs by more than ``consistency_levels``."""
+    ok = status == DenseStatus.OK
+    if not ok.any():
+        return
+    width, height = model.config.image_size
+    split = model.config.split
+    r = settings.window_px // 2
+    q_ok = q_r[ok]
+    ru0 = int(max(split, np.floor(q_ok[:, 0].min()) - r - 1))
+    ru1 = int(min(width, np.ceil(q_ok[:, 0].max()) + r + 2))
+    rv0 = int(max(0, np.floor(q_ok[:, 1].min()) - r - 1))
+    rv1 = int(min(height, np.ceil(q_ok[:, 1].max()) + r + 2))
+    back = _coarse(model, grey, _Frame(ru0, rv0, ru1, rv1, Half.RIGHT), levels, settings)
+    q_safe = np.nan_to_num(q_r, nan=0.0)
+    iu = np.clip(np.rint(q_safe[..., 0]).astype(np.intp) - ru0, 0, ru1 - ru0 - 1)
+    iv = np.clip(np.rint(q_safe[..., 1]).astype(np.intp) - rv0, 0, rv1 - rv0 - 1)
+    agree = np.abs(back.w[iv, iu] - w) <= settings.consistency_levels * (levels[1] - levels[0])
+    status[ok & ~agree] = DenseStatus.INCONSISTENT
+
+
+def _sample_right(coeffs, origin, pixels, split, width, height, gradient=False):
+    """Spline samples of the right half at ``pixels`` (..., 2); NaN outside the half."""
+    u, v = pixels[..., 0], pixels[..., 1]
+    with np.errstate(invalid="ignore"):
+        inside = (u >= split) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
+    safe = np.where(inside[..., None], pixels, [[split, 0.0]])
+    values, gu, gv = spline_sample(coeffs, origin, safe)
+    values = np.where(inside, values, np.nan)
+    if gradient:
+        return values, np.where(inside, gu, np.nan), np.where(inside, gv, np.nan)
+    return values
+
+
+def accuracy_classes(surface: DenseSurface, bands_percent: tuple[float, float]) -> np.ndarray:
+    """Per pixel 0 green, 1 yellow, 2 red: the 2-sigma depth error within the first band
+    (percent of z), within the second, or beyond it / no depth."""
+    with np.errstate(invalid="ignore"):
+        rel = 200.0 * surface.sigma_depth / surface.depth
+    out = np.full(surface.status.shape, 2, dtype=np.uint8)
+    ok = surface.status == DenseStatus.OK
+    out[ok & (rel <= bands_percent[1])] = 1
+    out[ok & (rel <= bands_percent[0])] = 0
+    return out

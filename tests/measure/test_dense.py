@@ -1,0 +1,56 @@
+"""Dense correspondence against a textured plane rendered through a known model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from tests.conftest import make_raytrace_model
+from tests.measure.dense_data import render_plane
+
+from endomeasure.errors import BadInputError
+from endomeasure.measure.dense import DenseSettings, DenseStatus, dense_surface
+
+DEPTH_MM = 18.0
+REGION = (250, 200, 310, 260)  # where both halves of the test model overlap at 12-30 mm
+SETTINGS = DenseSettings(depth_range_mm=(12.0, 30.0))
+MIN_VALID = 0.85
+"""Share of the region's pixels measured: the plane is textured everywhere and both
+halves see it, so only texture-poor windows may be refused."""
+MIN_INSIDE_2SIGMA = 0.85
+"""Share of depth errors inside the predicted 2 sigma (95 % for a Gaussian error; the
+margin holds the sampling of some 5000 correlated pixels)."""
+
+
+@pytest.fixture(scope="module")
+def plane():
+    model = make_raytrace_model()
+    image = render_plane(model, DEPTH_MM, np.random.default_rng(7))
+    return model, image, dense_surface(model, image, REGION, SETTINGS)
+
+
+def test_dense_depth_of_a_textured_plane_is_right_within_its_sigma(plane):
+    _, _, surface = plane
+    ok = surface.status == DenseStatus.OK
+    assert surface.depth.shape == (60, 60)
+    assert ok.mean() >= MIN_VALID
+    err = surface.depth[ok] - DEPTH_MM
+    assert np.mean(np.abs(err) <= 2 * surface.sigma_depth[ok]) >= MIN_INSIDE_2SIGMA
+    assert np.median(np.abs(err)) < 0.01 * DEPTH_MM
+    assert np.all(np.isnan(surface.depth[~ok]))
+    # the points lie on their left rays at that depth
+    assert np.allclose(surface.points[ok][:, 2], surface.depth[ok])
+
+
+def test_a_blank_frame_is_refused_not_guessed():
+    model = make_raytrace_model()
+    image = np.full((480, 640), 100, dtype=np.uint8)
+    surface = dense_surface(model, image, REGION, SETTINGS)
+    assert not np.any(surface.status == DenseStatus.OK)
+    assert np.all(np.isnan(surface.depth))
+
+
+@pytest.mark.parametrize("region", [(400, 10, 500, 100), (10, 10, 10, 50), (0, 500, 50, 600)])
+def test_a_region_outside_the_left_half_is_refused(plane, region):
+    model, image, _ = plane
+    with pytest.raises(BadInputError):
+        dense_surface(model, image, region, SETTINGS)
