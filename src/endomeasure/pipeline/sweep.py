@@ -107,7 +107,7 @@ def _client(scheduler: str | None, workers: int | None):
         n_workers=n,
         threads_per_worker=1,
         processes=True,
-        dashboard_address=None,
+        dashboard_address=":0",
         silence_logs=logging.ERROR,
     )
     return Client(cluster), cluster, f"local cluster of {n} worker processes"
@@ -209,10 +209,12 @@ def run_sweep(
     if max_designs is not None:
         todo = todo[:max_designs]
     t0 = time.perf_counter()
-    mode = "serial" if workers == 0 and scheduler is None else "nothing to compute"
-    if todo and mode == "serial":
+    mode = "serial" if workers == 0 and scheduler is None else "dask"
+    if not todo:
+        mode = "nothing to compute"
+    elif mode == "serial":
         _serial(spec, todo, store, on_progress, spec.n_designs, len(finished))
-    elif todo:
+    else:
         mode = _on_dask(
             spec, todo, store, on_progress, spec.n_designs, len(finished), scheduler, workers
         )
