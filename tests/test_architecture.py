@@ -2,11 +2,14 @@
 
 Direction of imports (STYLE.md)::
 
-    cli -> pipeline -> {io, features, simulate, measure, solvers} -> models
+    cli -> pipeline -> study -> {io, features, simulate, measure, solvers} -> models
         -> {geometry, interpolation} -> conventions, errors
 
-(``interpolation``: the cubic B-spline image interpolant that the corner refinement in
-features and the correspondence search in measure share, numeric like geometry.)
+(``study``: the design studies of ``endomeasure sweep``, one probe design evaluated
+from its spec through the simulator, the calibration and the error map, so it composes
+three middle-layer peers and sits above them. ``interpolation``: the cubic B-spline
+image interpolant that the corner refinement in features and the correspondence search
+in measure share, numeric like geometry.)
 
 A module may import from its own package, from any lower layer, and from the base
 (``endomeasure``, ``conventions``, ``errors``). Imports between the middle-layer peers
@@ -39,9 +42,10 @@ LAYERS = {
     "simulate": 3,
     "measure": 3,
     "solvers": 3,
-    "pipeline": 4,
-    "cli": 5,
-    "__main__": 6,
+    "study": 4,
+    "pipeline": 5,
+    "cli": 6,
+    "__main__": 7,
 }
 BASE = {"", "conventions", "errors", "defaults", "interrupts"}
 """Importable from anywhere ("" is the package root: ``__version__``)."""
@@ -57,6 +61,8 @@ ONLY_IN = {
     "typer": {"cli"},
     "rich": {"cli"},
     "click": {"cli"},
+    "dask": {"pipeline"},
+    "distributed": {"pipeline"},
 }
 """Third-party packages only one part may import: storage in io, terminal UI in cli."""
 
@@ -134,6 +140,20 @@ def test_h5py_typer_and_rich_stay_in_their_parts():
             if root in ONLY_IN and part_of(module) not in ONLY_IN[root]:
                 violations.append(f"{module}:{line} imports {target}")
     assert violations == []
+
+
+DASK_MODULES = {"endomeasure.pipeline.sweep"}
+"""Where the sweep's execution on Dask lives: the design evaluation it runs stays pure."""
+
+
+def test_dask_stays_in_the_sweep_pipeline():
+    found = {
+        module
+        for module, path in modules()
+        for target, _, _ in imports(path, module)
+        if target.split(".")[0] in ("dask", "distributed")
+    }
+    assert found == DASK_MODULES
 
 
 def test_core_code_never_prints_or_exits():

@@ -1997,3 +1997,102 @@ def _render_compare(console: Console, r: Any) -> None:
     console.print(f"RMS z limit {r.rms_z_limit:.2f} (level {r.alpha:g} over the depths)")
     if r.plot:
         console.print(f"plot: {r.plot}")
+
+
+@command("sweep")
+def sweep(
+    spec: Annotated[Path, typer.Argument(help="Sweep spec (JSON).", show_default=False)],
+    output: Annotated[
+        Path, typer.Option("-o", "--output", help="Results file (HDF5), resumed if it exists.")
+    ] = Path("sweep.h5"),
+    scheduler: Annotated[
+        str | None, typer.Option("--scheduler", help="A running Dask scheduler, tcp://host:port.")
+    ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option("--workers", help="Local worker processes (default: one per core; 0 serial)."),
+    ] = None,
+    serial: Annotated[bool, typer.Option("--serial", help="Same as --workers 0.")] = False,
+    max_designs: Annotated[
+        int | None, typer.Option("--max-designs", help="Evaluate at most this many now.")
+    ] = None,
+    plot: Annotated[
+        Path | None, typer.Option("--plot", help="Figure of the results (.png, .pdf, .svg).")
+    ] = None,
+    export: Annotated[
+        int | None, typer.Option("--export", help="Write this design's preset and model file.")
+    ] = None,
+    export_dir: Annotated[
+        Path | None, typer.Option("--export-dir", help="Folder of --export (default: -o's).")
+    ] = None,
+    top: Annotated[int, typer.Option("--top", help="Designs shown in the ranked table.")] = 10,
+    json_output: JsonOption = False,
+) -> None:
+    """Sweep probe designs through simulated calibrations and error maps (docs/sweep.md).
+
+    Every design of SPEC the results file lacks is evaluated (its tolerance draws, the
+    calibration protocol, the figures of merit) on a Dask cluster, or serially; results
+    are written as they arrive, so a rerun computes only the missing designs. Prints the
+    designs ranked by the worst 95 % error and the Pareto front against the cost.
+    """
+    from endomeasure.pipeline.sweep import run_sweep
+
+    console = _stderr_console()
+    with _progress(console, "designs", enabled=not json_output) as on_progress:
+        report = run_sweep(
+            spec,
+            output,
+            scheduler=scheduler,
+            workers=0 if serial else workers,
+            max_designs=max_designs,
+            on_progress=on_progress,
+            plot=plot,
+            export=export,
+            export_dir=export_dir,
+        )
+    if json_output:
+        _print_json(report.to_dict())
+        return
+    _render_sweep(console, report, top)
+
+
+def _render_sweep(console: Console, r: Any, top: int) -> None:
+    from rich.table import Table
+
+    table = Table(
+        title=f"{len(r.results)}/{r.n_designs} designs of {r.spec} ({r.output}): "
+        f"{len(r.computed)} computed now ({r.mode}, {r.seconds:.1f} s), {r.skipped} from before",
+        title_justify="left",
+    )
+    front = {p.index for p in r.pareto}
+    for column in (
+        "rank",
+        "design",
+        *r.axis_names,
+        "worst 95 % error",
+        "calibrated",
+        r.cost_name,
+        "Pareto",
+    ):
+        table.add_column(column, justify="right")
+    for rank, d in enumerate(r.ranked[: max(top, 0)], 1):
+        colour = "green" if d.merit <= r.target_pct and d.success == 1.0 else "red"
+        table.add_row(
+            str(rank),
+            str(d.index),
+            *(f"{v:.4g}" for v in d.values),
+            f"[{colour}]{d.merit:.3g} %[/{colour}]",
+            f"{d.success:.0%}",
+            f"{d.cost:.4g}",
+            "*" if d.index in front else "",
+        )
+    _print_table(console, table)
+    meets = [d for d in r.ranked if d.merit <= r.target_pct and d.success == 1.0]
+    console.print(
+        f"{len(meets)} of {len(r.results)} designs meet {r.target_pct:g} %; Pareto "
+        f"front ({r.cost_name}): {', '.join(str(p.index) for p in r.pareto) or 'empty'}"
+    )
+    if r.missing:
+        console.print(f"{r.missing} designs not evaluated yet: run the same command again")
+    for path in ([r.plot] if r.plot else []) + r.exported:
+        console.print(f"wrote {path}")

@@ -70,6 +70,7 @@ __all__ = [
     "read_model_document",
     "read_model_file",
     "read_opencv_yaml",
+    "write_json_document",
     "write_map_csv",
 ]
 
@@ -165,6 +166,14 @@ def _atomic_write(path: Path, write) -> None:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def write_json_document(document: dict[str, Any], path: str | Path) -> Path:
+    """Write a JSON document atomically (a model file, a preset), indented."""
+    path = Path(path)
+    text = json.dumps(document, indent=1) + "\n"
+    _atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+    return path
 
 
 def export_files(fmt: str, out: str | Path) -> tuple[Path, ...]:

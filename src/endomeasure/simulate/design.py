@@ -31,6 +31,7 @@ __all__ = [
     "SENSOR_FORMATS",
     "draw_design",
     "common_field",
+    "check_optics",
     "DesignError",
 ]
 
@@ -257,8 +258,11 @@ def _prism(rng, lens: dict[str, Any], width: int, height: int) -> dict[str, Any]
     }
 
 
-def _check_optics(optics: TruthOptics) -> None:
-    """Raise :class:`DesignError` where the optics are not physical over the image."""
+def check_optics(optics: TruthOptics) -> None:
+    """Raise :class:`DesignError` where the optics are not physical over the image: total
+    internal reflection or a missed face (over more than ``MAX_DARK_FRACTION`` of it, or
+    anywhere in its centre), a lens map that does not invert, an apex band outside the
+    middle 60 % of the width."""
     width, height = optics.config.image_size
     uu, vv = np.meshgrid(np.linspace(0, width - 1, _GRID[0]), np.linspace(0, height - 1, _GRID[1]))
     q = np.stack([uu.ravel(), vv.ravel()], -1)
@@ -637,7 +641,7 @@ def _draw_once(seed: int, attempt: int) -> dict[str, Any]:
         optics = Preset(data).truth_optics
     except ValueError as exc:  # the apex does not image in the middle row, or worse
         raise DesignError(str(exc)) from None
-    _check_optics(optics)
+    check_optics(optics)
     protocol = _protocol(rng, optics, prism["apex_mm"][2], data)
     drawn["working_range_mm"] = [round(v, 3) for v in protocol.pop("_working_range_mm")]
     drawn["baseline_mm"] = round(protocol.pop("_baseline_mm"), 4)
