@@ -47,7 +47,7 @@ ACCURACY_RUNS := \
 	"bench/zone_spread_designs.py $(ACCURACY_WORK)/designs" \
 	"bench/misfit_designs.py $(ACCURACY_WORK)/designs --default $(ACCURACY_WORK)/accuracy.h5" \
 	"bench/operator_designs.py $(ACCURACY_WORK)/designs" \
-	"bench/accuracy_dense.py --session $(ACCURACY_WORK)/../demo/demo.h5" \
+	"bench/accuracy_dense.py --session $(DEMO_DIR)/demo.h5" \
 	"bench/figure5.py $(ACCURACY_WORK)/accuracy.h5 $(ACCURACY_WORK)/designs/design_005.h5" \
 	"bench/accuracy_split.py --work $(ACCURACY_WORK)/split" \
 	"bench/accuracy_compare.py --work $(ACCURACY_WORK)/compare" \
@@ -64,7 +64,9 @@ bench: install
 	done; \
 	if [ -n "$$failed" ]; then echo "make bench: failed or missed a target:$$failed"; exit 1; fi
 
+# accuracy_dense.py measures the scene images of the demo session: made first when missing
 accuracy: install
+	@test -f $(DEMO_DIR)/demo.h5 || $(PY) scripts/demo.py $(DEMO_DIR)
 	@failed=""; \
 	for run in $(ACCURACY_RUNS); do \
 		echo "== $$run $(ARGS)"; $(PY) $$run $(ARGS) || failed="$$failed $${run%% *}"; \

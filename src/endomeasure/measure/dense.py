@@ -290,8 +290,8 @@ def _zncc(ref: _RefStats, warped: np.ndarray, window: int):
 
 def _parabola(y_minus, y0, y_plus) -> np.ndarray:
     """Vertex offset in (-0.5, 0.5) of the parabola through three equally spaced values."""
-    den = y_minus - 2.0 * y0 + y_plus
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore"):  # scores of -inf: no vertex
+        den = y_minus - 2.0 * y0 + y_plus
         s = 0.5 * (y_minus - y_plus) / den
     return np.where(np.isfinite(s) & (den < 0), np.clip(s, -0.5, 0.5), 0.0)
 
