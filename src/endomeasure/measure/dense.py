@@ -495,7 +495,9 @@ def _refine(model, rays, base, ref, right: _RightHalf, dw: float, settings: Dens
     w = _box(base, settings.window_px) + np.interp(
         best + _parabola(y_minus, y0, y_plus), np.arange(offsets.size), offsets
     )
-    fine_end = (best == 0) | (best == offsets.size - 1) | ~np.isfinite(y_minus + y_plus)
+    fine_end = (
+        (best == 0) | (best == offsets.size - 1) | ~(np.isfinite(y_minus) & np.isfinite(y_plus))
+    )
     return w, fine_end
 
 
