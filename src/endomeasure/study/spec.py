@@ -282,16 +282,22 @@ class SweepSpec:
         return data
 
 
-def _protocol(doc: dict) -> dict[str, Any]:
-    protocol = doc.get("protocol", {})
-    if not isinstance(protocol, dict):
-        raise _bad("protocol must be an object")
-    unknown = set(protocol) - _PROTOCOL_KEYS
+def _section(doc: dict, name: str, keys) -> dict[str, Any]:
+    """The object ``doc[name]`` (empty when absent), refused unless it holds only ``keys``."""
+    section = doc.get(name, {})
+    if not isinstance(section, dict):
+        raise _bad(f"{name} must be an object")
+    unknown = set(section) - set(keys)
     if unknown:
         raise _bad(
-            f"unknown protocol key(s) {', '.join(sorted(unknown))}",
-            f"use {', '.join(sorted(_PROTOCOL_KEYS))}",
+            f"unknown {name} key(s) {', '.join(sorted(unknown))}",
+            f"use {', '.join(sorted(keys))}",
         )
+    return section
+
+
+def _protocol(doc: dict) -> dict[str, Any]:
+    protocol = _section(doc, "protocol", _PROTOCOL_KEYS)
     from endomeasure.models import MODELS
 
     n = protocol.get("images_per_board")
@@ -324,15 +330,7 @@ def _merit(doc: dict, model: str) -> dict[str, Any]:
     from endomeasure.measure.predict import TEMPLATES
     from endomeasure.models import model_class
 
-    merit = doc.get("merit", {})
-    if not isinstance(merit, dict):
-        raise _bad("merit must be an object")
-    unknown = set(merit) - _MERIT_KEYS
-    if unknown:
-        raise _bad(
-            f"unknown merit key(s) {', '.join(sorted(unknown))}",
-            f"use {', '.join(sorted(_MERIT_KEYS))}",
-        )
+    merit = _section(doc, "merit", _MERIT_KEYS)
     templates = []
     for t in merit.get("templates", [{"template": "x-segment", "size_mm": 1.0}]):
         name = t.get("template") if isinstance(t, dict) else None
