@@ -274,7 +274,11 @@ def section(rows: dict[int, dict], designs: str) -> str:
     ways = (
         ("residual", "the calibration's residual sigma, every point alike"),
         ("default", "`predict-error`'s default: each test image's measured noise, model misfit"),
-        ("truth", "each test image's true noise and correlation, model misfit (the ceiling)"),
+        (
+            "truth",
+            "each test image's true noise and correlation, model misfit (the best a "
+            "noise figure can do; the zone statistics' own spread: section below)",
+        ),
     )
     lines += [
         "",
