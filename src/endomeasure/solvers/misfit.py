@@ -295,12 +295,18 @@ def _fitted_kernel(pairs: _Pairs, std: np.ndarray, c: int) -> tuple[float, float
         np.add.at(n, (pairs.half[ok], b[ok]), 1)
         np.add.at(total, (pairs.half[ok], b[ok]), pairs.product[ok, c])
         lengths = np.geomspace(centres[0] / 2, 2 * centres[-1], _LENGTH_CANDIDATES)
-        for ring in lengths:
-            for decay in lengths[lengths >= ring]:
-                k = _kernel(centres, ring, decay)
-                cost = float(np.sum(var[:, None] * k * (var[:, None] * n * k - 2 * total)))
-                if cost < best_cost:
-                    best, best_cost = (float(ring), float(decay), float(stretch)), cost
+        # every (ring, decay) candidate at once: k[i, j, bin] for ring i and decay j
+        k = (
+            j0(centres / lengths[:, None])[:, None, :]
+            * np.exp(-0.5 * (centres / lengths[:, None]) ** 2)[None, :, :]
+        )
+        cost = np.einsum("h,ijb,hb->ij", var**2, k**2, n) - 2 * np.einsum(
+            "h,ijb,hb->ij", var, k, total
+        )
+        cost[np.tril_indices(lengths.size, -1)] = np.inf  # a decay shorter than its ring
+        i, j = np.unravel_index(np.argmin(cost), cost.shape)  # the first best, ring-major
+        if cost[i, j] < best_cost:
+            best, best_cost = (float(lengths[i]), float(lengths[j]), float(stretch)), cost[i, j]
     return best
 
 
