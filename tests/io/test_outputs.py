@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from endomeasure.errors import BadInputError, SessionError
-from endomeasure.io.export import _atomic_write
 from endomeasure.io.integrity import seal_file
 from endomeasure.io.outputs import (
     PLOT_SUFFIXES,
+    atomic_write,
     checked_output,
     checked_output_dir,
     checked_outputs,
@@ -83,7 +83,7 @@ def test_a_symlinked_output_is_written_through_keeping_the_link_and_mode(tmp_pat
     link.symlink_to(target)
     path = checked_output(link, "exported model")
     assert path == target
-    _atomic_write(path, lambda p: p.write_text("new\n"))
+    atomic_write(path, lambda p: p.write_text("new\n"))
     assert link.is_symlink() and target.read_text() == "new\n"
     assert os.stat(target).st_mode & 0o777 == 0o600
 

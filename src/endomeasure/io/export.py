@@ -51,7 +51,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
 from pathlib import Path
 from typing import Any
 
@@ -59,7 +58,7 @@ import numpy as np
 
 from endomeasure.conventions import Half, Status
 from endomeasure.errors import BadInputError
-from endomeasure.io.outputs import file_kind, is_regular_file
+from endomeasure.io.outputs import atomic_write, file_kind, is_regular_file
 
 __all__ = [
     "EXPORT_FORMATS",
@@ -152,27 +151,11 @@ def write_map_csv(error_map, path: str | Path) -> Path:
     return path
 
 
-def _atomic_write(path: Path, write) -> None:
-    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it over ``path``.
-
-    The temporary name keeps ``path``'s suffix (``cv2.FileStorage`` picks the format by it).
-    """
-    tmp = path.with_name(f".tmp{os.getpid()}-{path.name}")
-    try:
-        write(tmp)
-        if path.exists():  # a replaced file keeps its permissions
-            shutil.copymode(path, tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
 def write_json_document(document: dict[str, Any], path: str | Path) -> Path:
     """Write a JSON document atomically (a model file, a preset), indented."""
     path = Path(path)
     text = json.dumps(document, indent=1) + "\n"
-    _atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+    atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
     return path
 
 
@@ -232,7 +215,7 @@ def export_model(
             raise BadInputError("the output folder does not exist", path=str(folder))
     if fmt == "json":
         text = json.dumps(model_document(model, extras), indent=2) + "\n"
-        _atomic_write(files[0], lambda p: p.write_text(text))
+        atomic_write(files[0], lambda p: p.write_text(text))
     elif fmt == "ray-table":
         _write_ray_table(model, files[0])
     else:
@@ -245,7 +228,7 @@ def export_model(
             texts = _mrcal_texts(model, stereo)
         if fmt in _PER_HALF:
             for path, text in zip(files, texts, strict=True):
-                _atomic_write(path, lambda p, text=text: p.write_text(text))
+                atomic_write(path, lambda p, text=text: p.write_text(text))
     return files
 
 
@@ -277,7 +260,7 @@ def _write_opencv_yaml(model, stereo, out: Path) -> None:
         fs.write("split", int(model.config.split))
         fs.release()
 
-    _atomic_write(out, write)
+    atomic_write(out, write)
 
 
 def _half_cameras(model, stereo) -> tuple[np.ndarray, np.ndarray, tuple[int, int], tuple[int, int]]:
@@ -453,7 +436,7 @@ def _write_ray_table(model, out: Path) -> None:
                 g["origin"].attrs["units"] = "mm"
                 g["pixel_x"].attrs["units"] = g["pixel_y"].attrs["units"] = "px"
 
-    _atomic_write(out, write)
+    atomic_write(out, write)
 
 
 def read_opencv_yaml(path: str | Path) -> dict[str, np.ndarray]:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import stat
 import tempfile
 from collections.abc import Iterable
@@ -30,6 +31,7 @@ from endomeasure.errors import BadInputError, SessionError
 __all__ = [
     "PLOT_SUFFIXES",
     "SESSION_TMP_SUFFIX",
+    "atomic_write",
     "checked_output",
     "checked_output_dir",
     "checked_outputs",
@@ -280,3 +282,22 @@ def checked_session_target(path: str | os.PathLike, *, create: bool, probe: bool
         except BadInputError as exc:
             raise SessionError(exc.what, path=str(given), hint=exc.hint) from None
     return target
+
+
+def atomic_write(path: str | os.PathLike, write) -> Path:
+    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it over ``path``.
+
+    The temporary name keeps ``path``'s suffix (``cv2.FileStorage`` picks the format by it);
+    a replaced file keeps its mode; the temporary file never stays behind. Returns ``path``.
+    """
+    path = Path(path)
+    tmp = path.with_name(f".tmp{os.getpid()}-{path.name}")
+    try:
+        write(tmp)
+        if path.exists():  # a replaced file keeps its permissions
+            shutil.copymode(path, tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from endomeasure.io.outputs import atomic_write
+
 __all__ = ["write_ply", "read_ply"]
 
 _DTYPE = np.dtype(
@@ -52,12 +54,8 @@ def write_ply(
     ply_types = {"<f4": "float", "u1": "uchar", "<u2": "ushort"}
     header += [f"property {ply_types[_DTYPE[n].str.replace('|', '')]} {n}" for n in _DTYPE.names]
     header += ["end_header"]
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
-        fh.write(data.tobytes())
-    tmp.replace(path)
+    blob = ("\n".join(header) + "\n").encode("ascii") + data.tobytes()
+    atomic_write(path, lambda tmp: tmp.write_bytes(blob))
     return int(data.size)
 
 

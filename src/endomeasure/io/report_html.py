@@ -53,9 +53,7 @@ def _environment():
 def render_report(context: dict[str, Any], out: str | os.PathLike) -> Path:
     """Render the report page of ``context`` to ``out`` (atomically: a temporary file
     beside it, renamed over it)."""
-    from endomeasure.io.export import _atomic_write
+    from endomeasure.io.outputs import atomic_write
 
     html = _environment().get_template(_TEMPLATE).render(**context)
-    path = Path(out)
-    _atomic_write(path, lambda tmp: Path(tmp).write_text(html, encoding="utf-8"))
-    return path
+    return atomic_write(out, lambda tmp: tmp.write_text(html, encoding="utf-8"))

@@ -20,6 +20,7 @@ import h5py
 import numpy as np
 
 from endomeasure.errors import BadInputError
+from endomeasure.io.outputs import atomic_write
 
 __all__ = ["RESULTS_FORMAT", "RESULTS_VERSION", "SweepResultsFile"]
 
@@ -39,20 +40,16 @@ class SweepResultsFile:
         if self.path.exists():
             self._check_and_clean()
         else:
-            tmp = self.path.with_name(f".tmp-{self.path.name}")
-            with h5py.File(tmp, "w") as f:
-                f.attrs.update(
-                    {
-                        "format": RESULTS_FORMAT,
-                        "version": RESULTS_VERSION,
-                        "spec": spec_json,
-                        "spec_digest": digest,
-                        "n_designs": int(n_designs),
-                        "axes": json.dumps(list(axes)),
-                    }
-                )
-                f.create_group("designs")
-            tmp.replace(self.path)
+            attrs = {"format": RESULTS_FORMAT, "version": RESULTS_VERSION, "spec": spec_json,
+                     "spec_digest": digest, "n_designs": int(n_designs),
+                     "axes": json.dumps(list(axes))}  # fmt: skip
+
+            def create(tmp: Path) -> None:
+                with h5py.File(tmp, "w") as f:
+                    f.attrs.update(attrs)
+                    f.create_group("designs")
+
+            atomic_write(self.path, create)
 
     def _check_and_clean(self) -> None:
         try:
@@ -110,10 +107,7 @@ class SweepResultsFile:
             for g in f["designs"].values():
                 if not g.attrs.get("complete"):
                     continue
-                row = {
-                    field: np.array(g[field])
-                    for field in ("values", "status", "rms_px", "e95_pct", "n_points", "sigmas")
-                }
+                row = {field: np.array(data) for field, data in g.items()}  # as append wrote
                 row.update(
                     index=int(g.attrs["index"]),
                     seed=int(g.attrs["seed"]),
