@@ -467,6 +467,7 @@ def predict_map(
     noise: NoiseAssumptions = NoiseAssumptions(),  # noqa: B008 (immutable)
     plot: str | Path | None = None,
     csv: str | Path | None = None,
+    calibrated=None,
 ) -> MapReport:
     """Predicted std of a template measurement over a grid of the working volume.
 
@@ -475,7 +476,8 @@ def predict_map(
     JSON model with nominal parameters (no covariance; ``noise.sigma`` must be given).
     ``depths``: the planes of the grid, mm (default: ``MAP_PLANES`` planes over the depths
     where the calibration saw the board, or for a model file the paper's working range,
-    ``DEFAULT_DEPTHS_MM``); ``grid``: (NU, NV) pixels over the left half.
+    ``DEFAULT_DEPTHS_MM``); ``grid``: (NU, NV) pixels over the left half. ``calibrated``:
+    the session's ``model`` already loaded (a ``CalibratedModel``), not read again.
     """
     from endomeasure.io.export import write_map_csv
     from endomeasure.io.outputs import PLOT_SUFFIXES, checked_outputs
@@ -506,7 +508,10 @@ def predict_map(
     plot, csv = checked_outputs(
         [(plot, "plot", PLOT_SUFFIXES), (csv, "CSV file", None)], inputs=[session, model_file]
     )
-    cam, cm, source, name = _map_model(session, model, model_file)
+    if calibrated is not None:
+        cam, cm, source, name = calibrated.model, calibrated, str(session), model
+    else:
+        cam, cm, source, name = _map_model(session, model, model_file)
     if depths is None:
         seen = None if cm is None else cm.depth_range_mm
         depths = DEFAULT_DEPTHS_MM if seen is None else np.linspace(*seen, MAP_PLANES).round(1)

@@ -219,7 +219,7 @@ def _trust_section(session, name: str, cm, depths, limits, image_size, split) ->
         if seen is None:
             return {"missing": "the calibration stored no corner depths: give --depths"}
         depths = np.linspace(seen[0], seen[1], TRUST_DEPTHS).round(1).tolist()
-    report = predict_map(session, model=name, depths=depths, grid=TRUST_GRID)
+    report = predict_map(session, model=name, depths=depths, grid=TRUST_GRID, calibrated=cm)
     em = report.error_map
     relative = 100.0 * (np.abs(em.errors.bias) + Z95 * em.errors.std) / abs(em.true)
     relative[~em.visible] = np.nan
