@@ -54,6 +54,7 @@ __all__ = [
     "rigid_fit",
     "run_board_test",
     "TestImageNoise",
+    "measured_image_noise",
     "test_image_noise",
     "within_band",
 ]
@@ -324,6 +325,18 @@ def test_image_noise(bt: ModelBoardTest, model, grids: Mapping[str, np.ndarray])
     if finite.any():
         std[~finite] = np.median(std[finite], axis=0)
     return TestImageNoise(std, _shrunk_correlations(products, runs))
+
+
+def measured_image_noise(bt: ModelBoardTest, model, grids: Mapping[str, np.ndarray], source: str):
+    """:func:`test_image_noise` as the image noise of a prediction (an
+    ``ImageNoiseByImage`` described by ``source``), or None when no image has enough
+    neighbouring corners to measure it (the caller falls back to another figure)."""
+    from endomeasure.measure.predict import ImageNoiseByImage
+
+    measured = test_image_noise(bt, model, grids)
+    if not np.all(np.isfinite(measured.std)):
+        return None
+    return ImageNoiseByImage(measured.std, source, measured.rho)
 
 
 CORRELATION_VARIANCE_FACTOR = 1.94

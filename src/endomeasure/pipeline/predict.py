@@ -202,15 +202,12 @@ def board_test_noise(bt, model, noise: NoiseAssumptions, cm, what: str):
     correlation of a corner's two views
     (:func:`~endomeasure.measure.board_runs.test_image_noise`): what the images show,
     without the calibration's misfit that its residual sigma holds."""
-    from endomeasure.measure.board_runs import test_image_noise
-    from endomeasure.measure.predict import ImageNoiseByImage
+    from endomeasure.measure.board_runs import measured_image_noise
 
     if noise.sigma is not None or noise.rho_images != 0 or noise.rho_points != 0:
         return noise.image_noise(cm, what)
-    measured = test_image_noise(bt, model, _board_grids(bt))
-    if not np.all(np.isfinite(measured.std)):  # no image has enough neighbouring corners
-        return noise.image_noise(cm, what)
-    return ImageNoiseByImage(measured.std, TEST_IMAGE_NOISE, measured.rho)
+    measured = measured_image_noise(bt, model, _board_grids(bt), TEST_IMAGE_NOISE)
+    return noise.image_noise(cm, what) if measured is None else measured
 
 
 def _board_test_of(session, reader, model: str, cm, zone_mm: float):

@@ -100,12 +100,12 @@ def _detected(paths: Sequence[str | Path], spec, split: int, image_size) -> list
 def _image_noise(bt, cm, grids):
     """Each image's own detection noise (as the board test's prediction measures it), or
     the calibration's residual sigma where the images have too few corners for it."""
-    from endomeasure.measure.board_runs import test_image_noise
-    from endomeasure.measure.predict import ImageNoiseByImage, image_noise
+    from endomeasure.measure.board_runs import measured_image_noise
+    from endomeasure.measure.predict import image_noise
 
-    measured = test_image_noise(bt, cm.model, grids)
-    if np.all(np.isfinite(measured.std)):
-        return ImageNoiseByImage(measured.std, TEST_IMAGE_NOISE, measured.rho)
+    measured = measured_image_noise(bt, cm.model, grids, TEST_IMAGE_NOISE)
+    if measured is not None:
+        return measured
     return image_noise(None, cm.sigma_px, f"model {cm.name!r}", misfit=cm.misfit)
 
 
