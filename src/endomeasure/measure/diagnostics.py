@@ -33,8 +33,9 @@ __all__ = [
 ]
 
 BIAS_SIGNIFICANCE = 1e-3
-"""False-alarm probability per region of the residual-bias test: with a few dozen regions
-per half, pure noise flags one in about forty reports."""
+"""False-alarm probability per region of the residual-bias test: with the report's 6 x 4
+regions per half (48 per model), pure noise outlines a region in about one report in
+twenty."""
 
 TRUST_LABELS = ("green", "yellow", "red")
 """Bands of a trust map: within the first limit, within the second, beyond it or not
