@@ -1577,7 +1577,7 @@ def surface_command(
     ] = None,
     window: Annotated[
         int, typer.Option("--window", help="Correlation window side, px (odd).")
-    ] = defaults.PATCH_PX,
+    ] = defaults.DENSE_WINDOW_PX,
     wait_s: WaitOption = defaults.LOCK_WAIT_S,
     json_output: JsonOption = False,
 ) -> None:

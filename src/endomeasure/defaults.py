@@ -19,6 +19,7 @@ __all__ = [
     "MAX_WORKERS_PER_CPU",
     "MIN_ZONE_MM",
     "PATCH_PX",
+    "DENSE_WINDOW_PX",
     "TRUST_BANDS_PERCENT",
     "WARN_PERCENT",
     "ZONE_MM",
@@ -39,6 +40,14 @@ yellow up to the operator warning (:data:`WARN_PERCENT`); red beyond it."""
 
 PATCH_PX = 15
 """Side of the correlation patch of the automatic search in the other half (px, odd)."""
+
+DENSE_WINDOW_PX = 31
+"""Side of the dense search's correlation window (px, odd). A surface pixel has no
+mark to lock on: its match's precision is set by the texture's derivative energy
+against the noise, summed over the window (sigma ~ 1 / side), and on weakly textured
+metal a patch-sized window leaves most pixels above the refusal precision. The window
+follows the surface (its warp is the coarse depth map), so the cost is resolution: the
+depth is an average over the window, which the user sets with ``--window``."""
 
 ZONE_MM = 5.0
 """Width of the distance zones of the board test (mm): the paper's Fig. 4 uses zones of

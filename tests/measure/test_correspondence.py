@@ -745,3 +745,22 @@ def test_the_misfit_is_what_the_residual_holds_beyond_its_noise(rng):
     assert got == pytest.approx(1.5, rel=0.05)
     # a noise-free, perfectly fitted patch has no misfit
     assert _measured_misfit(np.zeros(n), gain, s_ref, s_t, ref, target, 4) == 0.0
+
+
+def test_the_noise_level_function_recovers_a_photon_counting_sensors_noise():
+    """Poisson shot noise plus Gaussian read noise on a smooth, textured scene: the fitted
+    read and shot terms against the sensor's (closed form: ``sigma^2 = r^2 + g * I``)."""
+    from endomeasure.measure.correspondence import noise_level
+
+    rng = np.random.default_rng(3)
+    gain_dn_per_e, read_e = 255.0 / 6000.0, 12.0
+    yy, xx = np.mgrid[0:480, 0:320]
+    signal_dn = 10.0 + 200.0 * np.exp(-((xx - 160) ** 2 + (yy - 240) ** 2) / (2 * 110.0**2))
+    signal_dn *= 1.0 + 0.2 * np.sin(xx / 3.0) * np.cos(yy / 4.0)
+    electrons = rng.poisson(signal_dn / gain_dn_per_e) + rng.normal(0.0, read_e, signal_dn.shape)
+    image = np.clip(np.rint(electrons * gain_dn_per_e), 0, 255)
+    fitted = noise_level(image)
+    assert fitted.shot == pytest.approx(gain_dn_per_e, rel=0.1)
+    for level in (20.0, 100.0, 200.0):
+        truth = np.sqrt((read_e * gain_dn_per_e) ** 2 + 1 / 12 + gain_dn_per_e * level)
+        assert fitted.sigma(level) == pytest.approx(truth, rel=0.1)

@@ -12,7 +12,9 @@ from endomeasure.measure.dense import DenseSettings, DenseStatus, dense_surface
 
 DEPTH_MM = 18.0
 REGION = (250, 200, 310, 260)  # where both halves of the test model overlap at 12-30 mm
-SETTINGS = DenseSettings(depth_range_mm=(12.0, 30.0))
+SETTINGS = DenseSettings(depth_range_mm=(12.0, 30.0), window_px=15)
+"""A 15 px window: the 60 px region lies near the edge of the overlap, where a larger
+window leaves the right half."""
 MIN_VALID = 0.85
 """Share of the region's pixels measured: the plane is textured everywhere and both
 halves see it, so only texture-poor windows may be refused."""
@@ -54,3 +56,24 @@ def test_a_region_outside_the_left_half_is_refused(plane, region):
     model, image, _ = plane
     with pytest.raises(BadInputError):
         dense_surface(model, image, region, SETTINGS)
+
+
+def test_an_illumination_ramp_that_differs_between_the_halves_does_not_shift_the_depth():
+    """Vignetting and the light's fall-off multiply each half's view of a point by a
+    different smooth field; the windows' trend removal keeps the depth unbiased."""
+    model = make_raytrace_model()
+    rng = np.random.default_rng(11)
+    flat = render_plane(model, DEPTH_MM, rng, noise_dn=0.0).astype(np.float64)
+    width, height = model.config.image_size
+    uu, vv = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
+    right = uu >= model.config.split
+    # brightness falls by a third across each half, in opposite directions
+    ramp = np.where(right, 1.0 - 0.33 * (uu - 320) / 320, 0.67 + 0.33 * uu / 320)
+    shaded = flat * ramp * (1.0 + 0.1 * np.sin(vv / 40.0))
+    surface = dense_surface(model, shaded, REGION, SETTINGS)
+    ok = surface.status == DenseStatus.OK
+    assert ok.mean() >= MIN_VALID
+    err = surface.depth[ok] - DEPTH_MM
+    # unbiased: the median error is a small part of the predicted sigma
+    assert abs(np.median(err)) < 0.25 * np.median(surface.sigma_depth[ok])
+    assert np.mean(np.abs(err) <= 2 * surface.sigma_depth[ok]) >= MIN_INSIDE_2SIGMA

@@ -47,11 +47,12 @@ import numpy as np
 from endomeasure import defaults
 from endomeasure.conventions import Half
 from endomeasure.errors import BadInputError
-from endomeasure.interpolation import spline_coefficients, spline_sample
+from endomeasure.interpolation import noise_gain, spline_coefficients, spline_sample
 from endomeasure.measure.correspondence import (
     MAX_PRECISION_PX,
     MIN_SCORE,
-    estimate_noise,
+    NoiseLevel,
+    noise_level,
     match_precision,
 )
 from endomeasure.measure.epipolar import DEPTH_RANGE_MM
@@ -113,7 +114,7 @@ class DenseSettings:
         Side of the median that smooths the coarse depth before the refinement (odd).
     """
 
-    window_px: int = defaults.PATCH_PX
+    window_px: int = defaults.DENSE_WINDOW_PX
     depth_range_mm: tuple[float, float] = DEPTH_RANGE_MM
     coarse_step_px: float = 1.0
     fine_steps: int = 4
@@ -138,7 +139,7 @@ class DenseSurface(NamedTuple):
     ``depth`` and ``sigma_depth`` are z and its 1-sigma in the model frame (mm, NaN
     where ``status`` is not OK); ``points`` (h, w, 3) mm; ``sigma_point`` the 1-sigma
     of the point along its ray, mm; ``right`` (h, w, 2) the matched right pixel;
-    ``precision_px`` the match's sigma along the curve; ``score`` the ZNCC; ``grey``
+    ``precision_px`` the match's sigma along the curve; ``score`` the ZNCC corrected for noise; ``grey``
     the left image's values; ``status`` :class:`DenseStatus` codes (uint8).
     """
 
@@ -152,7 +153,7 @@ class DenseSurface(NamedTuple):
     score: np.ndarray
     grey: np.ndarray
     status: np.ndarray
-    noise: tuple[float, float]  # per half, grey levels
+    noise: tuple[NoiseLevel, NoiseLevel]  # per half, grey levels
     levels: int  # coarse sweep levels
 
 
@@ -261,26 +262,72 @@ def _box(x: np.ndarray, window: int) -> np.ndarray:
     )
 
 
+def _ramp_kernels(window: int):
+    """Separable kernels of the window averages of ``x * du`` and ``x * dv`` (offsets from
+    the window's centre), and the average of ``du^2`` (= that of ``dv^2``)."""
+    r = window // 2
+    ramp = np.arange(-r, r + 1, dtype=np.float64) / window
+    flat = np.full(window, 1.0 / window)
+    return ramp, flat, r * (r + 1) / 3.0
+
+
+def _trend(x: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """Window averages of ``x * du`` and ``x * dv``: the window's linear trend times
+    ``mean(du^2)`` (du, dv: column and row offset from the window's centre)."""
+    import cv2
+
+    ramp, flat, _ = _ramp_kernels(window)
+    border = cv2.BORDER_REFLECT
+    return (
+        cv2.sepFilter2D(x, cv2.CV_64F, ramp, flat, borderType=border),
+        cv2.sepFilter2D(x, cv2.CV_64F, flat, ramp, borderType=border),
+    )
+
+
 class _RefStats(NamedTuple):
+    """The reference windows: mean, linear trend (u, v) and variance about mean + trend."""
+
     mean: np.ndarray
+    trend_u: np.ndarray
+    trend_v: np.ndarray
     var: np.ndarray
     grey: np.ndarray
 
 
+def _detrended(x: np.ndarray, window: int):
+    """Mean, trends and variance about the window's best plane of ``x``."""
+    mean = _box(x, window)
+    tu, tv = _trend(x, window)
+    ramp2 = _ramp_kernels(window)[2]
+    var = _box(x * x, window) - mean * mean - (tu * tu + tv * tv) / ramp2
+    return mean, tu, tv, np.maximum(var, 0.0)
+
+
 def _ref_stats(grey: np.ndarray, window: int) -> _RefStats:
-    mean = _box(grey, window)
-    return _RefStats(mean, np.maximum(_box(grey * grey, window) - mean * mean, 0.0), grey)
+    return _RefStats(*_detrended(grey, window), grey)
 
 
 def _zncc(ref: _RefStats, warped: np.ndarray, window: int):
-    """ZNCC of the reference windows with the warped other half (NaN where any sample of
-    the window is missing), the fit gain ``cov / var_other`` and ``var_other``."""
+    """ZNCC, about each window's best plane, of the reference windows with the warped
+    other half (NaN where any sample of the window is missing), the fit gain
+    ``cov / var_other`` and ``var_other``.
+
+    Both windows lose their mean and linear trend before they are compared: the
+    illumination of an endoscope (vignetting, the light sources' fall-off, a specular
+    lobe) multiplies the texture by a field that differs between the halves' views of
+    a point, and a window's share of that difference is a ramp, which plain ZNCC would
+    align with the texture's gradient and so shift the match.
+    """
     seen = np.isfinite(warped)
     filled = np.where(seen, warped, 0.0)
     complete = _box(seen.astype(np.float64), window) > 1.0 - 1e-9
-    m = _box(filled, window)
-    var = np.maximum(_box(filled * filled, window) - m * m, 0.0)
-    cov = _box(ref.grey * filled, window) - ref.mean * m
+    m, tu, tv, var = _detrended(filled, window)
+    ramp2 = _ramp_kernels(window)[2]
+    cov = (
+        _box(ref.grey * filled, window)
+        - ref.mean * m
+        - (ref.trend_u * tu + ref.trend_v * tv) / ramp2
+    )
     with np.errstate(invalid="ignore", divide="ignore"):
         ncc = cov / np.sqrt(ref.var * var)
         gain = cov / var
@@ -391,10 +438,7 @@ def dense_surface(
     split = model.config.split
     r = settings.window_px // 2
     u0, v0, u1, v1 = check_region(model, region, settings.window_px)
-    noise = (
-        max(estimate_noise(grey[:, :split]), 1.0 / np.sqrt(12.0)),
-        max(estimate_noise(grey[:, split:]), 1.0 / np.sqrt(12.0)),
-    )
+    noise = (noise_level(grey[:, :split]), noise_level(grey[:, split:]))
     # the reference window: the region plus a window's margin (inside the half)
     fu0, fv0 = max(0, u0 - r), max(0, v0 - r)
     fu1, fv1 = min(split, u1 + r), min(height, v1 + r)
@@ -513,21 +557,43 @@ def _match_at(model, rays, w, ref, right: _RightHalf, noise, settings: DenseSett
     rate = np.linalg.norm(dq_dw, axis=-1)  # px per unit inverse depth
     tangent = dq_dw / rate[..., None]
     values, gu, gv = right.sample(q_r.pixels, gradient=True)
-    score, gain, _ = _zncc(ref, values, settings.window_px)
+    ncc, gain, var_r = _zncc(ref, values, settings.window_px)
+    # each window's noise at its own signal level (the sensor's noise grows with it)
+    noise_l = noise[0].sigma(ref.mean)
+    noise_r = noise[1].sigma(_box(np.nan_to_num(values), settings.window_px))
     n = settings.window_px**2
-    g = gu * tangent[..., 0] + gv * tangent[..., 1]
-    g_mean = _box(np.nan_to_num(g), settings.window_px)
-    energy = n * (_box(np.nan_to_num(g * g), settings.window_px) - g_mean**2)
-    # the derivative of the interpolated noisy image carries noise energy of its own
-    energy -= (n - 1) * _spline_derivative_noise() * noise[1] ** 2
+    frac = np.nan_to_num(q_r.pixels - np.floor(q_r.pixels))
+    interpolated = _box(noise_gain(frac[..., 0]) * noise_gain(frac[..., 1]), settings.window_px)
+    score = _signal_score(ncc, (ref.var, noise_l**2), (var_r, noise_r**2 * interpolated), n)
+    g = np.nan_to_num(gu * tangent[..., 0] + gv * tangent[..., 1])
+    # the derivative's energy left once the windows lose their mean and trend (the part
+    # of the signal the correlation uses); the derivative of the interpolated noisy image
+    # carries noise energy of its own over the n - 3 remaining degrees of freedom
+    energy = n * _detrended(g, settings.window_px)[3]
+    energy -= (n - 3) * _spline_derivative_noise() * noise_r**2
     with np.errstate(invalid="ignore", divide="ignore"):
-        # the fit ref ~ gain * other + offset; its residual beyond the noise is the misfit
-        residual = ref.var * (1.0 - np.clip(score, -1, 1) ** 2) / gain**2
-        expected = noise[0] ** 2 / gain**2 + noise[1] ** 2
+        # the fit ref ~ gain * other + plane; its residual beyond the noise (over its
+        # n - 4 degrees of freedom) is the misfit
+        residual = ref.var * (1.0 - np.clip(ncc, -1, 1) ** 2) / gain**2
+        expected = (noise_l**2 / gain**2 + noise_r**2) * (n - 4) / n
         misfit = np.sqrt(np.maximum(residual - expected, 0.0))
-        precision = match_precision(energy, n, 1.0 / np.abs(gain), noise[0], noise[1], misfit, 1.0)
+        precision = match_precision(energy, n, 1.0 / np.abs(gain), noise_l, noise_r, misfit, 1.0)
         sigma_w = precision / rate
     return q_r, score, precision, sigma_w
+
+
+def _signal_score(ncc, ref, other, n: int) -> np.ndarray:
+    """The ZNCC corrected for image noise, as the operator search's ``signal_score``: the
+    expected ZNCC of identical signals under independent noise is
+    ``sqrt((1 - n1/v1)(1 - n2/v2))`` (``v``: a window's variance about its plane over its
+    ``n - 3`` degrees of freedom, ``n``: its noise variance); each factor is floored at
+    0.05 and the score capped at 1, so that :data:`MIN_SCORE` means the same here."""
+    factors = []
+    for var, noise_var in (ref, other):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            factors.append(np.maximum(1.0 - noise_var / (var * n / (n - 3)), 0.05))
+    with np.errstate(invalid="ignore"):
+        return np.minimum(1.0, ncc / np.sqrt(factors[0] * factors[1]))
 
 
 def _check_consistency(model, grey, status, q_r, w, levels, settings: DenseSettings) -> None:

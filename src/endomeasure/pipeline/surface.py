@@ -73,7 +73,7 @@ def surface(
     *,
     ply: str | Path | None = None,
     plot: str | Path | None = None,
-    window_px: int = defaults.PATCH_PX,
+    window_px: int = defaults.DENSE_WINDOW_PX,
     store: bool = True,
 ) -> SurfaceReport:
     """Dense depth of a region of an image's left half, stored as a ``surface`` record.
@@ -168,7 +168,7 @@ def surface(
     if store:
         attrs = {"method": METHOD, "window_px": settings.window_px,
                  "depth_range_mm": list(settings.depth_range_mm), "levels": result.levels,
-                 "noise_dn": list(result.noise), "counts": counts}  # fmt: skip
+                 "noise_level": [list(n) for n in result.noise], "counts": counts}  # fmt: skip
         with edit_session(session) as writer:
             if name in writer.record_names(records.SURFACE_RECORD):
                 writer.delete_record(records.SURFACE_RECORD, name)
