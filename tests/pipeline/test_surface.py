@@ -39,8 +39,8 @@ def session(tmp_path_factory):
 
 def test_the_depth_of_a_textured_plane_is_stored_with_its_point_cloud(session, tmp_path):
     ply = tmp_path / "plane.ply"
-    result = runner.invoke(cli.app, ["surface", str(session), "--image", "plane", "--region",
-                                     REGION, "--window", "15", "--ply", str(ply), "--json"])  # fmt: skip
+    args = ["--image", "plane", "--region", REGION, "--window", "15", "--ply", str(ply)]
+    result = runner.invoke(cli.app, ["surface", str(session), *args, "--json"])
     assert result.exit_code == 0, result.output
     doc = json.loads(result.stdout)
     assert doc["measured"] >= 0.8 * doc["pixels"]

@@ -52,8 +52,8 @@ from endomeasure.measure.correspondence import (
     MAX_PRECISION_PX,
     MIN_SCORE,
     NoiseLevel,
-    noise_level,
     match_precision,
+    noise_level,
 )
 from endomeasure.measure.epipolar import DEPTH_RANGE_MM
 
@@ -139,8 +139,8 @@ class DenseSurface(NamedTuple):
     ``depth`` and ``sigma_depth`` are z and its 1-sigma in the model frame (mm, NaN
     where ``status`` is not OK); ``points`` (h, w, 3) mm; ``sigma_point`` the 1-sigma
     of the point along its ray, mm; ``right`` (h, w, 2) the matched right pixel;
-    ``precision_px`` the match's sigma along the curve; ``score`` the ZNCC corrected for noise; ``grey``
-    the left image's values; ``status`` :class:`DenseStatus` codes (uint8).
+    ``precision_px`` the match's sigma along the curve; ``score`` the ZNCC corrected for
+    noise; ``grey`` the left image's values; ``status`` :class:`DenseStatus` codes (uint8).
     """
 
     region: tuple[int, int, int, int]  # u0, v0, u1, v1: columns u0 <= u < u1
