@@ -1298,6 +1298,23 @@ def report(
     console.print(f"report of {session} written to {summary.out}", markup=False)
 
 
+PlaneOption = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--plane",
+        help="A point of the measurement plane in the left half, U,V px (three times): "
+        "the --left points (a depth's 4th) are placed where their ray meets it.",
+    ),
+]
+PlaneRightOption = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--plane-right",
+        help="The --plane points in the right half, U,V px (three times); leave out to find them.",
+    ),
+]
+
+
 @command("measure")
 def measure(
     ctx: typer.Context,
@@ -1323,22 +1340,8 @@ def measure(
     kind: Annotated[
         str, typer.Option("--kind", help="length, point-line, depth, area or polyline.")
     ] = "length",
-    plane: Annotated[
-        list[str] | None,
-        typer.Option(
-            "--plane",
-            help="A point of the measurement plane in the left half, U,V px (three times): "
-            "the --left points (a depth's 4th) are placed where their ray meets it.",
-        ),
-    ] = None,
-    plane_right: Annotated[
-        list[str] | None,
-        typer.Option(
-            "--plane-right",
-            help="The --plane points in the right half, U,V px (three times); leave out to "
-            "find them.",
-        ),
-    ] = None,
+    plane: PlaneOption = None,
+    plane_right: PlaneRightOption = None,
     warn_percent: Annotated[
         float,
         typer.Option(
