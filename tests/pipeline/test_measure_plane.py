@@ -27,6 +27,7 @@ from endomeasure.measure.predict import ImageNoise
 from endomeasure.models import model_from_dict
 from endomeasure.pipeline import calibrated_model
 from endomeasure.pipeline.measure import measure_points
+from endomeasure.pipeline.predict import predict_stored_measurement
 from endomeasure.solvers.uncertainty import MeasurementFunction, propagate
 
 runner = CliRunner()
@@ -203,13 +204,15 @@ def test_points_land_on_the_plane_and_a_depth_projects_only_its_fourth(exact, na
     target = _on_tilted([[0.3, 0.2], [-0.4, 0.6]])
     pl, pr = (model.project(TILTED, h).pixels for h in ("left", "right"))
     ql = model.project(target, "left").pixels
-    r = measure_points(exact, name, "scene", [tuple(q) for q in ql], None, "length",
-                       plane=[tuple(q) for q in pl], plane_right=[tuple(q) for q in pr],
-                       store=False)  # fmt: skip
+    plane = {"plane": [tuple(q) for q in pl], "plane_right": [tuple(q) for q in pr]}
+    r = measure_points(exact, name, "scene", [tuple(q) for q in ql], None, "length", **plane)
     np.testing.assert_allclose([p.xyz for p in r.points], target, atol=EXACT_TOL_MM)
     assert r.error.value == pytest.approx(np.linalg.norm(target[1] - target[0]), abs=1e-6)
     assert r.noise.pixel_std.shape == (PLANE_POINTS + 2, 4)
     assert np.all(r.noise.pixel_std[PLANE_POINTS:, 2:] == 0)  # no right pixel
+    # predict-error of the stored record propagates the same inputs, so the same +-
+    again = predict_stored_measurement(exact, r.record, store=False)
+    assert again.error.std == pytest.approx(r.error.std, rel=1e-9)
     # depth: the first three triangulated (a plane at z = 21), the fourth on TILTED
     reference = np.array([[-1.0, -1.0, 21.0], [1.0, -1.0, 21.0], [0.0, 1.0, 21.0]])
     point = _on_tilted([[0.1, -0.2]])
