@@ -227,17 +227,19 @@ def test_points_land_on_the_plane_and_a_depth_projects_only_its_fourth(exact, na
     assert d.error.value == pytest.approx(21.0 - point[0, 2], abs=1e-6)
 
 
-def _parallel_plane(model) -> np.ndarray:
+def _parallel_plane(model, slope: float = 0.0) -> np.ndarray:
     """Three points of a plane 0.3 mm beside the left ray of the pixel that sees the
-    axis at 20 mm, and parallel to it; and that pixel."""
+    axis at 20 mm, and parallel to it (with ``slope``, moving away from it by that
+    much per mm forward, so meeting it behind); and that pixel."""
     pixel = model.project(np.array([0.0, 0.0, 20.0]), "left").pixels
     ray = model.rays(pixel[None], "left")
     o, d = ray.origins[0], ray.directions[0]
     side = np.cross(d, [0.0, 1.0, 0.0])
     side /= np.linalg.norm(side)
     up = np.cross(side, d)  # in the plane, across the ray
-    return np.array([o + 18 * d + 0.3 * side, o + 22 * d + 0.3 * side,
-                     o + 20 * d + 0.3 * side + up]), tuple(pixel)  # fmt: skip
+    offset = [0.3 + slope * (t - 18) for t in (18, 22, 20)]
+    return np.array([o + 18 * d + offset[0] * side, o + 22 * d + offset[1] * side,
+                     o + 20 * d + offset[2] * side + up]), tuple(pixel)  # fmt: skip
 
 
 def _bad(session, *args):
@@ -273,5 +275,11 @@ def test_bad_plane_input_is_one_line_exit_2_and_nothing_stored(exact):
     message = _bad(exact, *_pixel_args("--left", [pixel, ql[0]]), *_pixel_args("--plane", vl),
                    *_pixel_args("--plane-right", vr))  # fmt: skip
     assert "parallel" in message and "point 1" in message
+    # a plane that the ray meets behind the probe (0.3 mm beside it at 18 mm, 0.32 at 22)
+    plane, pixel = _parallel_plane(model, slope=0.005)
+    vl, vr = (model.project(plane, h).pixels for h in ("left", "right"))
+    message = _bad(exact, *_pixel_args("--left", [pixel, ql[0]]), *_pixel_args("--plane", vl),
+                   *_pixel_args("--plane-right", vr))  # fmt: skip
+    assert "behind the probe" in message and "point 1" in message
     # --plane with --board-test
     assert "--plane" in _bad(exact, "--board-test", *_pixel_args("--plane", pl))
