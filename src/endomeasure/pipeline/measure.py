@@ -41,6 +41,17 @@ is uncertain by the search's predicted precision ``precision_px`` (from the patc
 texture and the image noise, with the search's systematic misfit added in quadrature),
 applied to both coordinates of the matched pixel. ``sigma`` (``--sigma``) overrides this
 with one value for every coordinate of both halves.
+
+The measurement plane
+---------------------
+``plane`` (``--plane`` x3): three left-half points, matched (or given with
+``plane_right``) and triangulated, span a plane; the measured ``left`` points (a depth's
+4th only, :func:`~endomeasure.measure.kinds.projected_points`) are not matched but
+placed where their left ray meets it (:func:`~endomeasure.measure.kinds.ray_plane`).
+The +- is the same unscented transform with the plane's points as inputs too
+(``plane=True`` of :func:`~endomeasure.measure.predict.predict_measurement_error`); a
+placed point's left pixel follows the rule above (exact when clicked), its right pixel
+is no input.
 """
 
 from __future__ import annotations
