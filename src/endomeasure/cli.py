@@ -1298,6 +1298,23 @@ def report(
     console.print(f"report of {session} written to {summary.out}", markup=False)
 
 
+PlaneOption = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--plane",
+        help="A point of the measurement plane in the left half, U,V px (three times): "
+        "the --left points (a depth's 4th) are placed where their ray meets it.",
+    ),
+]
+PlaneRightOption = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--plane-right",
+        help="The --plane points in the right half, U,V px (three times); leave out to find them.",
+    ),
+]
+
+
 @command("measure")
 def measure(
     ctx: typer.Context,
@@ -1323,6 +1340,8 @@ def measure(
     kind: Annotated[
         str, typer.Option("--kind", help="length, point-line, depth, area or polyline.")
     ] = "length",
+    plane: PlaneOption = None,
+    plane_right: PlaneRightOption = None,
     warn_percent: Annotated[
         float,
         typer.Option(
@@ -1360,11 +1379,14 @@ def measure(
     round without --left); a point the search refuses (untextured, repeated texture,
     not seen by both halves) stops the measurement with exit 1. It is stored in the
     session with its uncertainty (unscented transform of the image noise and the
-    calibration covariance). --board-test: x-/y-segments, point-to-plane distances and
-    square areas on every test image, mean error and std per zone, kind and model.
+    calibration covariance). --plane x3: the points are placed where their left ray meets
+    the plane through three other points (a depth's 4th point only), e.g. a missing
+    corner. --board-test: x-/y-segments, point-to-plane distances and square areas on
+    every test image, mean error and std per zone, kind and model.
     """
     if board_test:
-        points_only = ("image", "left", "right", "kind", "warn_percent", "sigma", "patch")
+        points_only = ("image", "left", "right", "kind", "warn_percent", "sigma", "patch",
+                       "plane", "plane_right")  # fmt: skip
         _refuse_given(ctx, points_only, "with --board-test", "leave them out")
         _measure_board_test(session, model, zone_mm, plot, json_output)
         return
@@ -1392,6 +1414,8 @@ def measure(
             sigma=parse_sigma(sigma),
             patch=patch,
             plot=plot,
+            plane=None if not plane else [parse_pixel(t) for t in plane],
+            plane_right=None if not plane_right else [parse_pixel(t) for t in plane_right],
         )
     except MatchRefusedError as exc:
         # show what the search found before the one-line error (exit 1)
@@ -1405,7 +1429,7 @@ def measure(
         return
     console = _stderr_console()
     if report.matched:
-        _render_matches(console, [p.match for p in report.points])
+        _render_matches(console, report.matches)
     _render_measurement(console, report)
     if report.plot:
         console.print(f"plot: {report.plot}")
@@ -1483,16 +1507,24 @@ def _render_measurement(console: Console, r: Any) -> None:
         "reproj. RMS px",
     ):
         table.add_column(column, justify="right")
-    for i, p in enumerate(r.points, 1):
+    rows = [(f"plane {i}", p) for i, p in enumerate(r.plane or [], 1)]
+    for name, p in rows + [(str(i), p) for i, p in enumerate(r.points, 1)]:
         table.add_row(
-            str(i),
+            name,
             "{:.2f},{:.2f}".format(*p.left),
-            "{:.2f},{:.2f}".format(*p.right),
+            "on the plane" if p.projected else "{:.2f},{:.2f}".format(*p.right),
             *(f"{v:.4f}" for v in p.xyz),
-            f"{p.gap_mm:.4f}",
-            f"{p.rms_px:.3f}",
+            "-" if p.projected else f"{p.gap_mm:.4f}",
+            "-" if p.projected else f"{p.rms_px:.3f}",
         )
     _print_table(console, table)
+    if r.plane is not None:
+        placed = [str(i) for i, p in enumerate(r.points, 1) if p.projected]
+        console.print(
+            f"point{'s' if len(placed) > 1 else ''} {', '.join(placed)} projected onto the "
+            "plane through plane 1-3 along the left ray, not triangulated",
+            markup=False,
+        )
     e = r.error
     console.print(
         f"[bold]{r.kind} = {e.value:.4f} {r.unit}[/bold]  +- {e.std:.4f} {r.unit} (1 sigma), "

@@ -18,6 +18,7 @@ __all__ = [
     "Refraction",
     "Perpendicular",
     "intersect_plane",
+    "plane_through",
     "refract",
     "refract_xyz",
     "common_perpendicular",
@@ -78,6 +79,26 @@ def intersect_plane(
     t = np.where(bad, np.nan, t)
     status = np.where(bad, Status.BEHIND, Status.OK).astype(STATUS_DTYPE)
     return PlaneHit(t, origins + t[..., None] * directions, status)
+
+
+def plane_through(p0: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The plane ``normal . x = distance`` through three points.
+
+    Parameters
+    ----------
+    p0, p1, p2 : ndarray, shape (..., 3), mm
+
+    Returns
+    -------
+    normal : ndarray, shape (..., 3)
+        Unit normal ``(p1 - p0) x (p2 - p0) / |...|``; NaN for collinear points.
+    distance : ndarray, shape (...), mm
+        ``normal . p0``.
+    """
+    n = np.cross(p1 - p0, p2 - p0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        n = n / np.linalg.norm(n, axis=-1, keepdims=True)
+    return n, np.sum(n * p0, axis=-1)
 
 
 class Refraction(NamedTuple):

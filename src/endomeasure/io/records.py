@@ -377,7 +377,7 @@ def measurement_record(name: str, report) -> Record:
     """The ``measurement`` record of a ``measure`` report (its points and predicted error;
     for a matched measurement also its per-point input noise, ``pixel_std`` (n, 2), px)."""
     points = report.points
-    matches = [p.match for p in points] if any(p.match is not None for p in points) else None
+    matches = report.matches or None
     e, unit = report.error, report.unit
     return Record(
         MEASUREMENT_RECORD,
@@ -398,6 +398,7 @@ def measurement_record(name: str, report) -> Record:
             "warning": report.warning,
             **report.noise.to_dict(correlations=False),
             "method": report.method,
+            **({} if report.plane is None else {"modifier": "plane"}),
             "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         },
         arrays={
@@ -407,6 +408,7 @@ def measurement_record(name: str, report) -> Record:
             "ray_gap": np.array([p.gap_mm for p in points], dtype=np.float64),
             "reprojection_rms": np.array([p.rms_px for p in points], dtype=np.float64),
             **_match_arrays(matches, report.noise),
+            **_plane_arrays(report),
         },
         units={
             **dict.fromkeys(
@@ -420,9 +422,30 @@ def measurement_record(name: str, report) -> Record:
             "points": "mm",
             "ray_gap": "mm",
             "reprojection_rms": "px",
-            **({} if matches is None else {"pixel_std": "px"}),
+            **({} if matches is None and report.plane is None else {"pixel_std": "px"}),
+            **(
+                {}
+                if report.plane is None
+                else {"plane_pixels_left": "px", "plane_pixels_right": "px", "plane_points": "mm"}
+            ),
         },
     )
+
+
+def _plane_arrays(report) -> dict[str, np.ndarray]:
+    """What a ``--plane`` measurement adds (nothing without one): which points were
+    placed on the plane, the plane's points, and the per-point image noise (``u_L, v_L,
+    u_R, v_R``) of the plane's points followed by the measured ones."""
+    if report.plane is None:
+        return {}
+    plane = report.plane
+    return {
+        "projected": np.array([p.projected for p in report.points], dtype=np.uint8),
+        "plane_pixels_left": np.array([p.left for p in plane], dtype=np.float64),
+        "plane_pixels_right": np.array([p.right for p in plane], dtype=np.float64),
+        "plane_points": np.array([p.xyz for p in plane], dtype=np.float64),
+        "pixel_std": np.asarray(report.noise.pixel_std, dtype=np.float64),
+    }
 
 
 class StoredMeasurement(NamedTuple):
@@ -430,17 +453,23 @@ class StoredMeasurement(NamedTuple):
 
     model: str
     kind: str
-    pixels_left: np.ndarray  # (n, 2) px
-    pixels_right: np.ndarray  # (n, 2) px
+    pixels_left: np.ndarray  # (n, 2) px; with a plane, its 3 points first
+    pixels_right: np.ndarray  # (n, 2) px; NaN for the points placed on the plane
+    plane: bool = False  # a ``--plane`` measurement
 
 
 def stored_measurement(record: Record) -> StoredMeasurement:
-    """The model, kind and pixels of a ``measurement`` record."""
+    """The model, kind and pixels of a ``measurement`` record (for a ``--plane`` one,
+    the plane's points first, as :func:`~endomeasure.measure.predict.
+    predict_measurement_error` takes them with ``plane=True``)."""
+    a = record.arrays
+    plane = record.attrs.get("modifier") == "plane"
+    left, right = a["pixels_left"], a["pixels_right"]
+    if plane:
+        left = np.vstack([a["plane_pixels_left"], left])
+        right = np.vstack([a["plane_pixels_right"], right])
     return StoredMeasurement(
-        str(record.attrs["model"]),
-        str(record.attrs["measurement_kind"]),
-        record.arrays["pixels_left"],
-        record.arrays["pixels_right"],
+        str(record.attrs["model"]), str(record.attrs["measurement_kind"]), left, right, plane
     )
 
 

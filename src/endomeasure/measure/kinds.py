@@ -22,6 +22,14 @@ Two layers:
 - :func:`measure` checks one set of points (count, coincident, collinear) and raises
   :class:`~endomeasure.errors.BadInputError` with a clear message before computing.
 
+The measurement plane
+---------------------
+The ``--plane`` modifier of videoscopes (SPEC section 7): the points of a length,
+point-line, polyline or area, and the 4th point of a depth, are not triangulated but
+placed where their left ray meets a plane through three other points
+(:func:`projected_points`, :func:`plane_of`, :func:`ray_plane`), so that an edge that
+is burnt off or a corner that is missing can be measured where it was.
+
 Depth sign convention
 ---------------------
 The plane's normal is oriented towards the probe: towards the origin of the model frame
@@ -56,6 +64,10 @@ __all__ = [
     "evaluate",
     "COINCIDENT_MM",
     "COLLINEAR_SIN",
+    "PLANE_POINTS",
+    "plane_of",
+    "projected_points",
+    "ray_plane",
 ]
 
 COINCIDENT_MM = 1e-6
@@ -354,3 +366,105 @@ def measure(kind: str, points: np.ndarray) -> float:
     """
     points = validate(kind, points)
     return float(KINDS[kind].function(points))
+
+
+# ----- the measurement plane --------------------------------------------------------------------
+
+PLANE_POINTS = 3
+"""A measurement plane is given by three points."""
+
+
+def projected_points(kind: str, n: int) -> np.ndarray:
+    """Which of a ``kind``'s ``n`` points a measurement plane places (bool (n,)): the 4th
+    of a depth (its first three span the reference plane), every point of the others."""
+    kind_spec(kind)
+    mask = np.ones(n, dtype=bool)
+    if kind == "depth":
+        mask[:3] = False
+    return mask
+
+
+def plane_of(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """The plane through three triangulated points, ``normal . x = distance``.
+
+    Parameters
+    ----------
+    points : ndarray, shape (3, 3), mm
+
+    Returns
+    -------
+    normal : ndarray, shape (3,)
+        Unit normal.
+    distance : float, mm
+
+    Raises
+    ------
+    BadInputError
+        Non-finite or collinear points (:data:`COLLINEAR_SIN`).
+    """
+    from endomeasure.geometry.rays import plane_through
+
+    p = np.asarray(points, dtype=np.float64)
+    if p.shape != (PLANE_POINTS, 3) or not np.all(np.isfinite(p)):
+        raise BadInputError(f"a measurement plane needs {PLANE_POINTS} finite points (3,)")
+    if _collinear(p[0], p[1], p[2]):
+        raise BadInputError(
+            "--plane: the three plane points are collinear, so they define no plane",
+            hint="pick three plane points that span a triangle",
+        )
+    normal, distance = plane_through(p[0], p[1], p[2])
+    return normal, float(distance)
+
+
+def ray_plane(
+    origins: np.ndarray,
+    directions: np.ndarray,
+    normal: np.ndarray,
+    distance: float,
+    first: int = 1,
+) -> np.ndarray:
+    """Where rays meet a measurement plane, refusing rays that cannot.
+
+    Parameters
+    ----------
+    origins, directions : ndarray, shape (m, 3)
+        Rays (mm, unit directions; non-central: one origin each).
+    normal : ndarray, shape (3,)
+        Unit normal of the plane ``normal . x = distance`` (:func:`plane_of`).
+    distance : float, mm
+    first : int
+        The number of the first ray's point, for the messages.
+
+    Returns
+    -------
+    ndarray, shape (m, 3), mm
+
+    Raises
+    ------
+    BadInputError
+        A ray parallel to the plane (the sine of its angle to the plane at most
+        :data:`COLLINEAR_SIN`, the degenerate geometry of three collinear points), or
+        meeting it behind its origin (the plane lies behind the probe there).
+
+    Notes
+    -----
+    ``t = (distance - normal . o) / (normal . d)``, point ``o + t d`` with ``t > 0``.
+    """
+    from endomeasure.geometry.rays import intersect_plane
+
+    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    sine = np.abs(d @ normal)
+    for i in np.flatnonzero(~(sine > COLLINEAR_SIN)):
+        raise BadInputError(
+            f"--plane: the ray of point {first + i} is parallel to the plane, so it meets it "
+            "nowhere (or everywhere)",
+            hint="pick plane points on the surface the point lies on, facing the probe",
+        )
+    hit = intersect_plane(o, d, normal, distance)
+    for i in np.flatnonzero(~(hit.t > 0)):
+        raise BadInputError(
+            f"--plane: the ray of point {first + i} meets the plane behind the probe",
+            hint="pick plane points on the surface the point lies on, facing the probe",
+        )
+    return hit.points

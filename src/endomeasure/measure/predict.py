@@ -25,7 +25,7 @@ import numpy as np
 
 from endomeasure.conventions import Status
 from endomeasure.errors import BadInputError
-from endomeasure.measure.kinds import evaluate, kind_spec
+from endomeasure.measure.kinds import PLANE_POINTS, evaluate, kind_spec, projected_points
 from endomeasure.solvers.uncertainty import (
     MeasurementFunction,
     Propagation,
@@ -335,8 +335,15 @@ def measurement_function(
     *,
     with_params: bool = False,
     with_offsets: bool = False,
+    plane: bool = False,
 ) -> MeasurementFunction:
-    """The black box ``f`` of a measurement kind (see :class:`MeasurementFunction`)."""
+    """The black box ``f`` of a measurement kind (see :class:`MeasurementFunction`).
+
+    With ``plane``, ``n_points`` counts the kind's points after the
+    :data:`~endomeasure.measure.kinds.PLANE_POINTS` of a measurement plane, which come
+    first in the inputs; the kind's :func:`~endomeasure.measure.kinds.projected_points`
+    are placed on that plane.
+    """
     spec = kind_spec(kind)
     if n_points < spec.min_points or (spec.max_points is not None and n_points > spec.max_points):
         raise BadInputError(
@@ -345,9 +352,18 @@ def measurement_function(
             + ("" if spec.max_points == spec.min_points else " or more")
             + " points",
         )
-    return MeasurementFunction(
-        model, spec.function, n_points, with_params=with_params, with_offsets=with_offsets
-    )
+    if not plane:
+        return MeasurementFunction(
+            model, spec.function, n_points, with_params=with_params, with_offsets=with_offsets
+        )
+    on_plane = np.concatenate([np.zeros(PLANE_POINTS, bool), projected_points(kind, n_points)])
+
+    def on_the_plane(points: np.ndarray) -> np.ndarray:
+        return spec.function(points[..., PLANE_POINTS:, :])
+
+    return MeasurementFunction(model, on_the_plane, PLANE_POINTS + n_points,
+                               with_params=with_params, with_offsets=with_offsets,
+                               on_plane=on_plane)  # fmt: skip
 
 
 def predict_measurement_error(
@@ -360,6 +376,7 @@ def predict_measurement_error(
     param_cov: np.ndarray | None = None,
     misfit: ModelMisfit | None = None,
     method: str = "ut",
+    plane: bool = False,
     **options,
 ) -> Propagation:
     """Predicted bias and standard deviation of measurements from their pixels.
@@ -380,6 +397,11 @@ def predict_measurement_error(
         The calibration's model misfit, propagated as the input block ``model`` (when it
         is present).
     method : {'ut', 'linear', 'mc'}
+    plane : bool
+        A measurement plane (:mod:`endomeasure.measure.kinds`): the first
+        :data:`~endomeasure.measure.kinds.PLANE_POINTS` pixels are the plane's points,
+        the rest the kind's; the right pixels of the points placed on the plane are not
+        used (they may be NaN) and should carry no noise.
     **options
         Passed to the propagator (``alpha``, ``beta``, ``kappa``; ``n_samples``,
         ``seed``, ``parts``; ``step``; ``cross``). The UT adds cross points on the
@@ -396,6 +418,8 @@ def predict_measurement_error(
         ql = ql[None]
         pixels_right = np.asarray(pixels_right, dtype=np.float64)[None]
     n = ql.shape[-2]
+    qr = np.asarray(pixels_right, dtype=np.float64)
+    n_kind = n - PLANE_POINTS if plane else n
     if param_cov is not None:
         f_free = int(model.free_mask.sum())
         if np.shape(param_cov) != (f_free, f_free):
@@ -404,10 +428,12 @@ def predict_measurement_error(
                 f"model's free parameters, got {np.shape(param_cov)}"
             )
     offsets = misfit is not None and misfit.present
-    f = measurement_function(model, kind, n, with_params=param_cov is not None,
-                             with_offsets=offsets)  # fmt: skip
+    f = measurement_function(model, kind, n_kind, with_params=param_cov is not None,
+                             with_offsets=offsets, plane=plane)  # fmt: skip
+    # an unused right pixel: any finite value (the left one) keeps the inputs finite
+    qr = np.where(f.on_plane[:, None], ql, qr)
     cov, blocks = noise.covariance(n, param_cov, misfit.covariance(ql) if offsets else None)
-    return propagate(f, f.inputs(ql, pixels_right), cov, method, blocks=blocks, **options)
+    return propagate(f, f.inputs(ql, qr), cov, method, blocks=blocks, **options)
 
 
 # ----- error maps over the working volume ----------------------------------------------------

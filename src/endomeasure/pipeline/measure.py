@@ -41,6 +41,17 @@ is uncertain by the search's predicted precision ``precision_px`` (from the patc
 texture and the image noise, with the search's systematic misfit added in quadrature),
 applied to both coordinates of the matched pixel. ``sigma`` (``--sigma``) overrides this
 with one value for every coordinate of both halves.
+
+The measurement plane
+---------------------
+``plane`` (``--plane`` x3): three left-half points, matched (or given with
+``plane_right``) and triangulated, span a plane; the measured ``left`` points (a depth's
+4th only, :func:`~endomeasure.measure.kinds.projected_points`) are not matched but
+placed where their left ray meets it (:func:`~endomeasure.measure.kinds.ray_plane`).
+The +- is the same unscented transform with the plane's points as inputs too
+(``plane=True`` of :func:`~endomeasure.measure.predict.predict_measurement_error`); a
+placed point's left pixel follows the rule above (exact when clicked), its right pixel
+is no input.
 """
 
 from __future__ import annotations
@@ -172,14 +183,18 @@ class MeasuredPoint:
     match: Any = None
     """The automatic search's :class:`~endomeasure.measure.correspondence.Match` when
     this point's other-half pixel was found by it, else None."""
+    projected: bool = False
+    """Placed where its left ray meets the measurement plane (``--plane``), not
+    triangulated: no right pixel, ray gap or reprojection error (NaN)."""
 
     def to_dict(self) -> dict[str, Any]:
         out = {
             "left_px": list(self.left),
-            "right_px": list(self.right),
+            "right_px": None if self.projected else list(self.right),
             "xyz_mm": list(self.xyz),
-            "ray_gap_mm": self.gap_mm,
-            "reprojection_rms_px": self.rms_px,
+            "ray_gap_mm": None if self.projected else self.gap_mm,
+            "reprojection_rms_px": None if self.projected else self.rms_px,
+            "projected": self.projected,
         }
         if self.match is not None:
             out["match"] = self.match.to_dict()
@@ -206,11 +221,20 @@ class MeasureReport:
     noise: Any  # ImageNoise
     method: str
     plot: str | None = None
+    plane: list[MeasuredPoint] | None = None
+    """The three triangulated points of the measurement plane (``--plane``), else None."""
+
+    @property
+    def matches(self) -> list:
+        """The automatic search's matches, in the order searched (the plane's points
+        first); empty without a search."""
+        points = (self.plane or []) + self.points
+        return [p.match for p in points if p.match is not None]
 
     @property
     def matched(self) -> bool:
         """True when the other half's pixels were found by the automatic search."""
-        return any(p.match is not None for p in self.points)
+        return bool(self.matches)
 
     @property
     def warning(self) -> bool:
@@ -233,6 +257,8 @@ class MeasureReport:
             "plot": self.plot,
             "warning": self.warning,
             "matched": self.matched,
+            "modifier": None if self.plane is None else "plane",
+            "plane": None if self.plane is None else [p.to_dict() for p in self.plane],
         }
 
 
@@ -335,22 +361,147 @@ def _triangulated(model, model_name: str, ql, qr):
     return tri
 
 
-def _predicted(cm, kind: str, value: float, ql, qr, sigma, matches, query_half: Half):
-    """The predicted error of a measurement and the image noise it assumed."""
+def _predicted(
+    cm, kind: str, value: float, ql, qr, sigma, matches, query_half: Half, projected: int = 0
+):
+    """The predicted error of a measurement and the image noise it assumed; with
+    ``projected``, ``ql``/``qr`` are a measurement plane's points, the kind's
+    triangulated points and its last ``projected`` points, placed on the plane."""
     from endomeasure.measure.predict import ImageNoise, PredictedError, image_noise
     from endomeasure.measure.predict import predict_measurement_error as predict
 
+    n = ql.shape[0] - projected
     if sigma is None and matches is not None:
         # the clicked pixel defines the point; its match carries the search's precision
-        pixel_std = np.zeros((ql.shape[0], 2))
+        pixel_std = np.zeros((n, 2))
         pixel_std[:, 1 if query_half is Half.LEFT else 0] = [m.precision_px for m in matches]
         noise = ImageNoise.per_point(pixel_std, f"match precision, {query_half.label} pixels exact")
     else:
         noise = image_noise(sigma, cm.sigma_px, f"model {cm.name!r}", misfit=cm.misfit)
+    if projected:
+        noise = _with_projected(noise, n, projected, clicked=sigma is None and matches is not None)
     pred = predict(cm.model, kind, ql, qr, noise=noise, param_cov=cm.param_cov,
-                   misfit=cm.misfit, method=METHOD)  # fmt: skip
+                   misfit=cm.misfit, method=METHOD, plane=bool(projected))  # fmt: skip
     error = PredictedError.of(pred)
     return dataclasses.replace(error, value=value), noise
+
+
+def _with_projected(noise, n: int, projected: int, *, clicked: bool):
+    """``noise`` of ``n`` triangulated points, extended (per point, ``u_L, v_L, u_R,
+    v_R``) to ``projected`` points placed on a measurement plane: their left pixel at
+    the noise of the others' (exact when clicked), their unused right pixel at none."""
+    from endomeasure.measure.predict import ImageNoise
+    from endomeasure.solvers.uncertainty import pixel_sigmas
+
+    if noise.pixel_std is not None:
+        std = np.asarray(noise.pixel_std, dtype=np.float64)
+        std = np.repeat(std, 2, axis=-1) if std.shape[-1] == 2 else std
+    else:
+        std = np.tile(np.tile(pixel_sigmas(noise.sigma), 2), (n, 1))
+    extra = np.zeros((projected, 4))
+    if not clicked:
+        extra[:, :2] = pixel_sigmas(noise.sigma)
+    return ImageNoise.per_point(np.vstack([std, extra]), noise.source)
+
+
+# ----- the measurement plane (``--plane``) ------------------------------------------------------
+
+
+class _PlaneRequest(NamedTuple):
+    """A checked ``--plane`` measurement: the points to triangulate (the plane's three,
+    then the kind's that are not projected) and the left pixels placed on the plane."""
+
+    triangulated: _Request
+    projected: np.ndarray  # (k, 2) px
+
+
+def _checked_plane_request(kind, left, right, plane, plane_right, warn_percent, plot):
+    from endomeasure.measure.kinds import PLANE_POINTS, check_count, kind_spec, projected_points
+
+    kind_spec(kind)
+    if len(plane) != PLANE_POINTS:
+        raise BadInputError(
+            f"--plane needs exactly {PLANE_POINTS} points, got {len(plane)}",
+            hint="give --plane U,V three times (left-half pixels of three points on the plane)",
+        )
+    if plane_right is not None and len(plane_right) != PLANE_POINTS:
+        raise BadInputError(
+            f"{PLANE_POINTS} --plane points but {len(plane_right)} --plane-right points",
+            hint="give one --plane-right U,V for every --plane U,V, or none to find them",
+        )
+    if left is None:
+        raise BadInputError(
+            "--plane places left-half points on the plane: give them with --left U,V",
+            hint="give the measured points with --left",
+        )
+    check_count(kind, len(left), "--left points")
+    on_plane = projected_points(kind, len(left))
+    n_tri = int(np.sum(~on_plane))
+    if right is not None and n_tri == 0:
+        raise BadInputError(
+            f"--right has no effect with --plane: every {kind} point is placed on the plane "
+            "along its left ray, not matched",
+            hint="leave out --right",
+        )
+    if right is not None and len(right) != n_tri:
+        raise BadInputError(
+            f"{kind} with --plane triangulates its first {n_tri} points, but {len(right)} "
+            "--right points were given",
+            hint=f"give --right for the first {n_tri} points only, or none to find them",
+        )
+    if n_tri and (right is None) != (plane_right is None):
+        raise BadInputError(
+            "give the right pixels of both the plane points and the triangulated points "
+            "(--plane-right and --right), or of neither (to find them all)",
+        )
+    left = np.asarray(left, dtype=np.float64).reshape(-1, 2)
+    plane = np.asarray(plane, dtype=np.float64).reshape(-1, 2)
+    tri_left = np.vstack([plane, left[~on_plane]])
+    tri_right = None
+    if plane_right is not None:
+        extra = [] if right is None else list(right)
+        tri_right = np.asarray(list(plane_right) + extra, dtype=np.float64).reshape(-1, 2)
+    request = _checked_request(kind, tri_left, tri_right, warn_percent, plot)
+    return _PlaneRequest(request, left[on_plane])
+
+
+def _point_names(kind: str, n_tri: int) -> list[str]:
+    """How the points of a plane measurement's search are named: the plane's, then
+    the kind's."""
+    return [f"plane point {i + 1}" for i in range(3)] + [f"point {i + 1}" for i in range(n_tri - 3)]
+
+
+def _plane_pairs(cm, request: _PlaneRequest, image_pixels, patch: int, plot, kind: str):
+    """:func:`_pixel_pairs` of the points a plane measurement triangulates; a refusal
+    names them as the plane's points or the kind's."""
+    try:
+        return _pixel_pairs(cm, request.triangulated, image_pixels, patch, plot)
+    except MatchRefusedError as exc:
+        names = _point_names(kind, len(exc.matches))
+        refused = [(i, m) for i, m in enumerate(exc.matches) if not m.ok]
+        reasons = "; ".join(f"{names[i]}: {m.status.value}: {m.message}" for i, m in refused)
+        raise MatchRefusedError(
+            f"{len(refused)} of {len(exc.matches)} points not matched in the right half, "
+            f"nothing measured ({reasons})",
+            exc.matches,
+            hint="move the point onto texture both halves see, or give its match with "
+            "--plane-right U,V (--right U,V for a depth's first three points)",
+            plot=exc.plot,
+        ) from None
+
+
+def _on_plane(model, plane_xyz: np.ndarray, pixels: np.ndarray, first: int) -> np.ndarray:
+    """Where the left rays of ``pixels`` (k, 2) meet the plane through ``plane_xyz``
+    (3, 3); ``first`` is the number of the first of them in the measurement."""
+    from endomeasure.measure.kinds import plane_of, ray_plane
+
+    normal, distance = plane_of(plane_xyz)
+    rays = model.rays(pixels, Half.LEFT)
+    for i in np.flatnonzero(rays.status != Status.OK):
+        why = Status(int(rays.status[i])).name.lower().replace("_", " ")
+        raise BadInputError(f"point {first + i}: its left pixel has no ray ({why})",
+                            hint="pick a point inside the left half's field of view")  # fmt: skip
+    return ray_plane(rays.origins, rays.directions, normal, distance, first)
 
 
 def measure_points(
@@ -366,6 +517,8 @@ def measure_points(
     store: bool = True,
     patch: int = defaults.PATCH_PX,
     plot: str | Path | None = None,
+    plane: Sequence[tuple[float, float]] | None = None,
+    plane_right: Sequence[tuple[float, float]] | None = None,
 ) -> MeasureReport:
     """Triangulate an operator's points, measure, predict the uncertainty and store it.
 
@@ -393,6 +546,11 @@ def measure_points(
     plot : path, optional
         PNG of both halves with the points, matches and epipolar curves (automatic
         search only; written also when a point is refused).
+    plane, plane_right : sequence of three (u, v), px, optional
+        A measurement plane (the module docstring): its three points in the left half,
+        and their right pixels (None: found automatically). The ``left`` points of a
+        length, point-line, polyline or area, the 4th of a depth, are then placed where
+        their left ray meets the plane; ``right`` gives only a depth's first three.
 
     Returns
     -------
@@ -403,13 +561,20 @@ def measure_points(
     MatchRefusedError
         The search refused a point (nothing is stored).
     """
-    from endomeasure.io import records
-    from endomeasure.io.session import edit_session, open_session
+    from endomeasure.io.session import open_session
     from endomeasure.measure.kinds import measure
     from endomeasure.pipeline import calibrated_model
 
-    request = _checked_request(kind, left, right, warn_percent, plot)
-    n = _check_count(request, kind)  # before any image is read
+    plane_request = None
+    if plane is None and plane_right is not None:
+        raise BadInputError("--plane-right needs its --plane points", hint="give --plane U,V x3")
+    if plane is not None:
+        plane_request = _checked_plane_request(kind, left, right, plane, plane_right,
+                                               warn_percent, plot)  # fmt: skip
+        request = plane_request.triangulated
+    else:
+        request = _checked_request(kind, left, right, warn_percent, plot)
+        n = _check_count(request, kind)  # before any image is read
     plot = _checked_plot(plot, session, store)
     with open_session(session) as reader:
         # an unknown image is a BadInputError listing the images, an impossible one (its
@@ -421,6 +586,10 @@ def measure_points(
             MatchSettings(patch=patch)  # the patch size checked before any work
         cm = calibrated_model(reader, model_name, session)
         image_pixels = reader.image(image) if request.search else None
+    if plane_request is not None:
+        where = (str(session), model_name, image, float(warn_percent))
+        report = _plane_report(cm, where, kind, plane_request, image_pixels, patch, plot, sigma)
+        return _stored(report, session, store)
     ql, qr, matches, written = _pixel_pairs(cm, request, image_pixels, patch, plot)
     tri = _triangulated(cm.model, model_name, ql, qr)
     value = measure(kind, tri.points)
@@ -439,12 +608,59 @@ def measure_points(
     report = MeasureReport(str(session), "", model_name, image, kind, request.spec.unit,
                            measured, error, float(warn_percent), noise, METHOD,
                            written)  # fmt: skip
+    return _stored(report, session, store)
+
+
+def _stored(report: MeasureReport, session, store: bool) -> MeasureReport:
+    """``report`` stored as the session's next measurement record (when ``store``)."""
+    from endomeasure.io import records
+    from endomeasure.io.session import edit_session
+
     if store:
         with edit_session(session) as writer:
             name = records.next_measurement_name(writer.record_names(records.MEASUREMENT_RECORD))
             report = dataclasses.replace(report, record=name)
             writer.write_record(records.measurement_record(name, report))
     return report
+
+
+def _plane_report(cm, where, kind: str, request: _PlaneRequest, image_pixels, patch: int,
+                  plot, sigma) -> MeasureReport:  # fmt: skip
+    """A ``--plane`` measurement; ``where``: (session, model name, image, warn percent)."""
+    from endomeasure.measure.kinds import PLANE_POINTS, measure
+
+    session, model_name, image, warn_percent = where
+    model = cm.model
+    ql, qr, matches, written = _plane_pairs(cm, request, image_pixels, patch, plot, kind)
+    n_tri = ql.shape[0]
+    _check_pixels(request.projected, Half.LEFT, model, "left")
+    tri = _triangulated(model, model_name, ql, qr)
+    first = n_tri - PLANE_POINTS + 1  # the number of the first projected point
+    xyz = _on_plane(model, tri.points[:PLANE_POINTS], request.projected, first)
+    points = np.vstack([tri.points[PLANE_POINTS:], xyz])
+    value = measure(kind, points)
+    k = xyz.shape[0]
+    all_left = np.vstack([ql, request.projected])
+    all_right = np.vstack([qr, np.full((k, 2), np.nan)])
+    error, noise = _predicted(cm, kind, value, all_left, all_right, sigma, matches,
+                              request.triangulated.query_half, projected=k)  # fmt: skip
+
+    def point(i: int) -> MeasuredPoint:
+        if i < n_tri:
+            return MeasuredPoint(
+                tuple(map(float, ql[i])), tuple(map(float, qr[i])),
+                tuple(map(float, tri.points[i])), float(tri.gap[i]), float(tri.rms[i]),
+                None if matches is None else matches[i],
+            )  # fmt: skip
+        j = i - n_tri
+        left = tuple(map(float, request.projected[j]))
+        return MeasuredPoint(left, (math.nan, math.nan), tuple(map(float, xyz[j])),
+                             math.nan, math.nan, projected=True)  # fmt: skip
+
+    measured = [point(i) for i in range(n_tri + k)]
+    return MeasureReport(session, "", model_name, image, kind, request.triangulated.spec.unit,
+                         measured[PLANE_POINTS:], error, warn_percent, noise, METHOD, written,
+                         plane=measured[:PLANE_POINTS])  # fmt: skip
 
 
 # ----- the board test ---------------------------------------------------------------------------

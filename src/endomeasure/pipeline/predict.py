@@ -308,6 +308,25 @@ class MeasurementPredictionReport:
         }
 
 
+def _without_unused(image_noise, stored):
+    """The image noise of a stored measurement's inputs: for a ``--plane`` one, none on
+    the right pixels of the points placed on the plane (they are not used)."""
+    if not stored.plane:
+        return image_noise
+    from endomeasure.measure.predict import ImageNoise
+    from endomeasure.solvers.uncertainty import pixel_sigmas
+
+    if image_noise.rho_images or image_noise.rho_points:
+        raise BadInputError(
+            "a --plane measurement's prediction takes no correlations (its placed points "
+            "have no right pixel)",
+            hint="leave out --rho-images and --rho-points",
+        )
+    std = np.tile(np.tile(pixel_sigmas(image_noise.sigma), 2), (stored.pixels_left.shape[0], 1))
+    std[np.isnan(stored.pixels_right).any(axis=1), 2:] = 0.0
+    return ImageNoise.per_point(std, image_noise.source)
+
+
 def predict_stored_measurement(
     session: str | Path,
     measurement: str,
@@ -345,7 +364,8 @@ def predict_stored_measurement(
         stored.kind,
         stored.pixels_left,
         stored.pixels_right,
-        noise=image_noise,
+        noise=_without_unused(image_noise, stored),
+        plane=stored.plane,
         **noise.propagation(cm),
     )
     report = MeasurementPredictionReport(

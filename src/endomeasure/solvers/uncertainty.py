@@ -35,9 +35,10 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from endomeasure.conventions import Status
+from endomeasure.conventions import Half, Status
 from endomeasure.defaults import MAX_SIGMA_PX
 from endomeasure.errors import BadInputError
+from endomeasure.geometry.rays import intersect_plane, plane_through
 from endomeasure.models.base import ParamBatch
 from endomeasure.solvers.triangulate import triangulate
 
@@ -706,6 +707,10 @@ class MeasurementFunction:
         own so that the budget can name it.
     method : str
         Triangulation method (``'ml'`` default).
+    on_plane : ndarray of bool, shape (n_points,), optional
+        Points that are not triangulated but placed where their left ray meets the plane
+        through points 0, 1 and 2 (which must not be among them): a measurement plane.
+        Their right-pixel inputs are carried but not used.
 
     Notes
     -----
@@ -713,8 +718,8 @@ class MeasurementFunction:
     pixels and parameter vector once (the UT's sigma points repeat most of them), all
     in one batched solve with a parameter vector per correspondence
     (:func:`~endomeasure.solvers.triangulate.triangulate`'s ``params``), and returns
-    values of shape ``(...)``, NaN where a point fails or the parameter vector is not a
-    valid model.
+    values of shape ``(...)``, NaN where a point fails, a ray misses the plane (parallel,
+    or behind its origin) or the parameter vector is not a valid model.
     """
 
     def __init__(
@@ -726,11 +731,17 @@ class MeasurementFunction:
         with_params: bool = False,
         with_offsets: bool = False,
         method: str = "ml",
+        on_plane: np.ndarray | None = None,
     ):
         self.model = model
         self.formula = formula
         self.n_points = n_points
         self.method = method
+        self.on_plane = np.zeros(n_points, dtype=bool)
+        if on_plane is not None:
+            self.on_plane = np.asarray(on_plane, dtype=bool).reshape(-1)
+            if self.on_plane.shape != (n_points,) or self.on_plane[:3].any():
+                raise ValueError("on_plane needs one flag per point, none on points 0-2")
         self.free = np.flatnonzero(model.free_mask) if with_params else np.zeros(0, dtype=np.int64)
         self.n_pixel_inputs = 4 * n_points * (2 if with_offsets else 1)
         """Pixels, and their offsets when ``with_offsets``; the parameters follow."""
@@ -795,5 +806,22 @@ class MeasurementFunction:
             table = np.repeat(np.asarray(self.model.params)[None], free.shape[0], axis=0)
             table[:, self.free] = free
             params = ParamBatch(table, np.repeat(index.reshape(-1), n))
-        pts = self._points(corr, params).reshape(flat.shape[0], n, 3)
+        if not self.on_plane.any():
+            pts = self._points(corr, params).reshape(flat.shape[0], n, 3)
+            return self.formula(pts).reshape(lead)
+        # the triangulated points first (the plane's among them), then the left rays of
+        # the others cut with the plane of each input row
+        item = np.arange(corr.shape[0]).reshape(flat.shape[0], n)
+        tri, ray = item[:, ~self.on_plane].reshape(-1), item[:, self.on_plane]
+        pts = np.full((corr.shape[0], 3), np.nan)
+        pts[tri] = self._points(corr[tri], None if params is None else params.take(tri))
+        pts = pts.reshape(flat.shape[0], n, 3)
+        normal, distance = plane_through(pts[:, 0], pts[:, 1], pts[:, 2])
+        flat_ray = ray.reshape(-1)
+        batch = None if params is None else params.take(flat_ray)
+        rays = self.model.rays(corr[flat_ray, :2], Half.LEFT, batch)
+        shape = (*ray.shape, 3)
+        hit = intersect_plane(rays.origins.reshape(shape), rays.directions.reshape(shape),
+                              normal[:, None, :], distance[:, None])  # fmt: skip
+        pts[:, self.on_plane] = hit.points
         return self.formula(pts).reshape(lead)

@@ -1,0 +1,138 @@
+"""``measure --plane`` on the sample board test images: is a masked corner recovered
+within its +-?
+
+    PYTHONPATH=src .venv/bin/python bench/accuracy_plane.py [--images 0-34]
+
+For every committed test image (``sample_sessions/test``): a disc of constant grey
+(the image's median) painted over the last corner of the board in both halves, the
+session's raytrace model the simulator's truth optics (with the small calibration
+covariance of ``tests/pipeline/measure_data.py``), the plane through the board's three
+other outer corners (their true left pixels clicked, right pixels found by the
+automatic search), and the masked corner's true left pixel as the point: its position
+on the plane against the true corner (per coordinate, against the UT's std of that
+coordinate) and its length to its neighbour in the row against the square size.
+Prints, over the images, the share of errors inside 2 sigma and the RMS of error/std.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from tests.pipeline.measure_data import model_record  # noqa: E402
+
+from endomeasure.io.session import ImageRecord, edit_session, open_session  # noqa: E402
+from endomeasure.models import model_from_dict  # noqa: E402
+from endomeasure.pipeline import calibrated_model  # noqa: E402
+from endomeasure.pipeline.measure import MatchRefusedError, measure_points  # noqa: E402
+
+SAMPLES = ROOT / "sample_sessions"
+DISC_RADIUS_PX = 8
+"""Covers a corner and its X-junction (the 1 mm squares are 15-30 px wide here)."""
+
+
+def masked(image: np.ndarray, pixels) -> np.ndarray:
+    """``image`` with a disc of its median grey over each pixel (the missing corner)."""
+    out = image.copy()
+    for q in pixels:
+        centre = (int(round(q[0])), int(round(q[1])))
+        cv2.circle(out, centre, DISC_RADIUS_PX, int(np.median(image)), -1)
+    return out
+
+
+def position_std(session, report) -> np.ndarray:
+    """The UT std (3,) mm of the first measured point's x, y, z, with the noise and the
+    calibration covariance the measurement's +- used."""
+    from endomeasure.measure.kinds import PLANE_POINTS
+    from endomeasure.solvers.uncertainty import MeasurementFunction, propagate
+
+    with open_session(session) as reader:
+        cm = calibrated_model(reader, report.model, session)
+    pts = report.plane + report.points[:1]
+    ql = np.array([p.left for p in pts])
+    qr = np.where(np.isnan([p.right for p in pts]), ql, [p.right for p in pts])
+    on_plane = np.arange(len(pts)) >= PLANE_POINTS
+    from endomeasure.measure.predict import ImageNoise
+
+    noise = ImageNoise.per_point(report.noise.pixel_std[: len(pts)], report.noise.source)
+    cov, blocks = noise.covariance(len(pts), cm.param_cov)
+    std = []
+    for k in range(3):
+        f = MeasurementFunction(cm.model, lambda p, k=k: p[..., PLANE_POINTS, k], len(pts),
+                                with_params=True, on_plane=on_plane)  # fmt: skip
+        std.append(
+            float(propagate(f, f.inputs(ql[None], qr[None]), cov, "ut", blocks=blocks).std[0])
+        )
+    return np.array(std)
+
+
+def run(indices) -> list[dict]:
+    truth_model = model_from_dict(
+        json.loads((SAMPLES / "simulation.json").read_text())["truth_model"]
+    )
+    rows = []
+    for i in indices:
+        name = f"test_{i:03d}"
+        truth = json.loads((SAMPLES / "test" / f"{name}.json").read_text())
+        cols, rs = truth["target"]["cols"], truth["target"]["rows"]
+        corner, neighbour = cols * rs - 1, cols * rs - 2
+        plane = [0, cols - 1, (rs - 1) * cols]
+        ql = np.array(truth["corners"]["pixels"]["left"])
+        qr = np.array(truth["corners"]["pixels"]["right"])
+        xyz = np.array(truth["corners"]["points_mm"])
+        image = cv2.imread(str(SAMPLES / "test" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "plane.h5"
+            with edit_session(path, create=True) as w:
+                w.set_metadata(image_size=tuple(truth_model.config.image_size),
+                               split=truth_model.config.split)  # fmt: skip
+                w.write_images([ImageRecord(name, masked(image, [ql[corner], qr[corner]]),
+                                            f"{name}.png", "0" * 64, "test")])  # fmt: skip
+                w.write_model(model_record("raytrace", truth_model))
+            try:
+                points = [tuple(ql[corner]), tuple(ql[neighbour])]
+                on = [tuple(ql[j]) for j in plane]
+                r = measure_points(path, "raytrace", name, points, None, "length", plane=on,
+                                   store=False)  # fmt: skip
+            except MatchRefusedError as exc:
+                rows.append({"image": name, "refused": str(exc)})
+                continue
+            std = position_std(path, r)
+        err = np.array(r.points[0].xyz) - xyz[corner]
+        square = truth["target"]["square_mm"]
+        rows.append({"image": name, "z_mm": float(xyz[corner, 2]), "position_error": err.tolist(),
+                     "position_std": std.tolist(), "length_error": r.error.value - square,
+                     "length_std": r.error.std,
+                     "match_error_px": [float(np.linalg.norm(np.array(p.match.right) - qr[j]))
+                                        for p, j in zip(r.plane, plane, strict=True)],
+                     "match_precision_px": [p.match.precision_px for p in r.plane]})  # fmt: skip
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--images", default="0-34")
+    a, b = map(int, parser.parse_args().images.split("-"))
+    rows = run(range(a, b + 1))
+    done = [r for r in rows if "refused" not in r]
+    z_pos = np.array([np.divide(r["position_error"], r["position_std"]) for r in done])
+    z_len = np.array([r["length_error"] / r["length_std"] for r in done])
+    for r in rows:
+        print(json.dumps(r))
+    print(f"{len(done)} of {len(rows)} images measured ({len(rows) - len(done)} refused)")
+    for what, z in (("position x", z_pos[:, 0]), ("position y", z_pos[:, 1]),
+                    ("position z", z_pos[:, 2]), ("length", z_len)):  # fmt: skip
+        print(f"{what}: {100 * np.mean(np.abs(z) <= 2):.0f} % inside 2 sigma, "
+              f"RMS error/std {np.sqrt(np.mean(z**2)):.2f}")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
