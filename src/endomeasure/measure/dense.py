@@ -374,8 +374,12 @@ def _coarse(model, grey, frame: _Frame, levels: np.ndarray, settings: DenseSetti
     y0 = volume[best, rows, cols]
     y_minus = volume[np.maximum(best - 1, 0), rows, cols]
     y_plus = volume[np.minimum(best + 1, levels.size - 1), rows, cols]
-    end = ~np.isfinite(y_minus) | ~np.isfinite(y_plus) | (best == 0) | (best == levels.size - 1)
-    frac = best + _parabola(y_minus, y0, y_plus)
+    # a neighbour level whose window leaves the other half (the overlap's edge) only loses
+    # the parabola (the refinement decides); the peak at a level of the range's ends is
+    # not a peak
+    end = (best == 0) | (best == levels.size - 1)
+    both = np.isfinite(y_minus) & np.isfinite(y_plus)
+    frac = best + np.where(both, _parabola(y_minus, y0, y_plus), 0.0)
     w = np.interp(frac, np.arange(levels.size), levels)
     status = np.full(best.shape, DenseStatus.OK, dtype=np.uint8)
     status[end] = DenseStatus.AT_RANGE_END
