@@ -163,11 +163,10 @@ def main() -> int:
     args = parser.parse_args()
     from endomeasure import defaults
     from endomeasure.measure.dense import DenseSettings
-    from endomeasure.pipeline.surface import DEPTH_MARGINS
+    from endomeasure.pipeline.measure import search_depths
 
-    def settings_for(cm):
-        near, far = cm.depth_range_mm
-        return DenseSettings(depth_range_mm=(DEPTH_MARGINS[0] * near, DEPTH_MARGINS[1] * far))
+    def settings_for(cm):  # as `endomeasure surface` does
+        return DenseSettings(depth_range_mm=search_depths(cm))
 
     frames = default_frames(args.session, settings_for)
     design = []

@@ -17,12 +17,8 @@ from typing import Any
 from endomeasure import defaults
 from endomeasure.errors import BadInputError
 
-__all__ = ["SurfaceReport", "surface", "DEPTH_MARGINS"]
+__all__ = ["SurfaceReport", "surface"]
 
-DEPTH_MARGINS = (0.8, 1.25)
-"""The searched depths: the calibration's depth range widened by these factors (a
-surface a little nearer or farther than the boards were is still found; the range sets
-the sweep's cost)."""
 METHOD = "plane sweep (ZNCC) + refinement along the exact curve; sigma: UT of the match"
 
 
@@ -112,18 +108,15 @@ def surface(
         dense_surface,
     )
     from endomeasure.pipeline import calibrated_model
+    from endomeasure.pipeline.measure import search_depths
 
     start = time.perf_counter()
     ply_path, plot_path = _checked_outputs(session, ply, plot) if store else (ply, plot)
     with open_session(session) as reader:
         reader.image_info(image)
         cm = calibrated_model(reader, model_name, session)
-        settings = DenseSettings(window_px=window_px)
-        if cm.depth_range_mm is not None:
-            near, far = cm.depth_range_mm
-            settings = dataclasses.replace(
-                settings, depth_range_mm=(near * DEPTH_MARGINS[0], far * DEPTH_MARGINS[1])
-            )
+        # the operator search's depths: where the user calibrated is where the probe works
+        settings = DenseSettings(window_px=window_px, depth_range_mm=search_depths(cm))
         clipped = check_region(cm.model, region, settings.window_px)  # before the pixels
         pixels = reader.image(image)
     if pixels.ndim == 3:
