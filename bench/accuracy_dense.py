@@ -163,7 +163,7 @@ def main() -> int:
     args = parser.parse_args()
     from endomeasure import defaults
     from endomeasure.measure.dense import DenseSettings
-    from endomeasure.pipeline.measure import search_depths
+    from endomeasure.pipeline import search_depths
 
     def settings_for(cm):  # as `endomeasure surface` does
         return DenseSettings(depth_range_mm=search_depths(cm))

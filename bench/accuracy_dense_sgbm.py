@@ -79,8 +79,14 @@ def sgbm_depth(model, image, z0: float, depth_range):
     maps, focal = rectify(model, z0)
     grey = image.astype(np.float32)
     rect = {
-        h: cv2.remap(grey, maps[h][..., 0], maps[h][..., 1], cv2.INTER_CUBIC,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)  # fmt: skip
+        h: cv2.remap(
+            grey,
+            maps[h][..., 0],
+            maps[h][..., 1],
+            cv2.INTER_CUBIC,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )  # fmt: skip
         for h in Half
     }
     # disparities of the searched depths at z0's rectification: d ~ f b / z, both ends
@@ -95,10 +101,13 @@ def sgbm_depth(model, image, z0: float, depth_range):
         P2=32 * BLOCK_PX**2, uniquenessRatio=5, disp12MaxDiff=1,
         mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
     )  # fmt: skip
-    disp = sgbm.compute(
-        np.clip(rect[Half.LEFT], 0, 255).astype(np.uint8),
-        np.clip(rect[Half.RIGHT], 0, 255).astype(np.uint8),
-    ).astype(np.float64) / 16.0
+    disp = (
+        sgbm.compute(
+            np.clip(rect[Half.LEFT], 0, 255).astype(np.uint8),
+            np.clip(rect[Half.RIGHT], 0, 255).astype(np.uint8),
+        ).astype(np.float64)
+        / 16.0
+    )
     valid = disp > lo - 1
     h, w = disp.shape
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -137,7 +146,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     from endomeasure.io.records import load_calibrated_model
     from endomeasure.io.session import open_session
-    from endomeasure.pipeline.measure import search_depths
+    from endomeasure.pipeline import search_depths
     from endomeasure.simulate.preset import load_preset
     from endomeasure.simulate.scenes import plan_set
 

@@ -239,7 +239,7 @@ def test_the_search_spans_the_depths_the_calibration_saw():
     # there, not over the default 8-60 mm, where its scene points have no match
     from endomeasure.io.records import CalibratedModel
     from endomeasure.measure.epipolar import DEPTH_RANGE_MM
-    from endomeasure.pipeline.measure import SEARCH_DEPTH_MARGINS, search_depths
+    from endomeasure.pipeline import SEARCH_DEPTH_MARGINS, search_depths
 
     seen = CalibratedModel("raytrace", None, None, None, depth_range_mm=(30.0, 130.0))
     near, far = search_depths(seen)

@@ -67,6 +67,7 @@ import numpy as np
 from endomeasure import defaults
 from endomeasure.conventions import Half, Status, in_half
 from endomeasure.errors import BadInputError, GoalNotMetError
+from endomeasure.pipeline import search_depths
 
 if TYPE_CHECKING:
     from endomeasure.measure.board_runs import ModelBoardTest
@@ -119,29 +120,6 @@ class MatchRefusedError(GoalNotMetError):
         super().__init__(what, hint=hint)
         self.matches = matches
         self.plot = plot
-
-
-SEARCH_DEPTH_MARGINS = (1.25, 2.0)
-"""The automatic search covers the depths where the calibration saw the board, from
-the nearest / the first to the farthest x the second: where the user calibrated is
-where the probe works, and a match beyond the searched depths is not found at all (or
-another feature on the curve is). The near end sets most of the curve's length in
-pixels (the disparity goes as 1 / depth), and a longer curve holds more look-alikes, so
-the margin is smaller there: at half the nearest depth a mark of the default preset's
-scene found a neighbouring mark as a second candidate, and on the 39 random designs'
-scenes (``bench/operator_designs.py``) more distances were refused as ambiguous than
-with 1.25. Without a stored depth range: the search's own default."""
-
-
-def search_depths(cm) -> tuple[float, float]:
-    """The depths (mm) the automatic search spans for the calibrated model ``cm``
-    (:data:`SEARCH_DEPTH_MARGINS`)."""
-    from endomeasure.measure.epipolar import DEPTH_RANGE_MM
-
-    if cm.depth_range_mm is None:
-        return DEPTH_RANGE_MM
-    (near, far), (near_margin, far_margin) = cm.depth_range_mm, SEARCH_DEPTH_MARGINS
-    return (near / near_margin, far * far_margin)
 
 
 def _match_other_half(

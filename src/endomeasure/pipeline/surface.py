@@ -107,8 +107,7 @@ def surface(
         check_region,
         dense_surface,
     )
-    from endomeasure.pipeline import calibrated_model
-    from endomeasure.pipeline.measure import search_depths
+    from endomeasure.pipeline import calibrated_model, search_depths
 
     start = time.perf_counter()
     ply_path, plot_path = _checked_outputs(session, ply, plot) if store else (ply, plot)
