@@ -77,3 +77,30 @@ def test_an_illumination_ramp_that_differs_between_the_halves_does_not_shift_the
     # unbiased: the median error is a small part of the predicted sigma
     assert abs(np.median(err)) < 0.25 * np.median(surface.sigma_depth[ok])
     assert np.mean(np.abs(err) <= 2 * surface.sigma_depth[ok]) >= MIN_INSIDE_2SIGMA
+
+
+def test_the_calibrations_share_of_the_depth_sigma_matches_monte_carlo(plane):
+    """The unscented transform of the parameters' covariance and the misfit's pixel
+    offsets through triangulation, against sampling both and triangulating."""
+    from endomeasure.measure.dense import _calibration_sigma
+    from endomeasure.solvers.triangulate import triangulate
+
+    model, _, surface = plane
+    ok = np.argwhere(surface.status == DenseStatus.OK)
+    ok = ok[:: ok.shape[0] // 4][:4]  # spread over the region
+    u0, v0 = surface.region[:2]
+    left = ok[:, ::-1].astype(float) + [u0, v0]
+    right = surface.right[ok[:, 0], ok[:, 1]]
+    free = np.flatnonzero(model.free_mask)
+    rng = np.random.default_rng(5)
+    scale = 1e-3 * np.maximum(np.abs(model.params[free]), 1e-2)
+    param_cov = np.diag(scale**2)
+    misfit_cov = np.diag([0.02, 0.01, 0.03, 0.01]) ** 2
+    predicted = _calibration_sigma(model, param_cov, misfit_cov, left, right)
+    draws = 4000
+    params = np.broadcast_to(model.params, (draws, model.params.size)).copy()
+    params[:, free] += rng.normal(size=(draws, free.size)) * scale
+    offsets = rng.multivariate_normal(np.zeros(4), misfit_cov, size=draws)
+    for k in range(left.shape[0]):
+        tri = triangulate(model, left[k] + offsets[:, :2], right[k] + offsets[:, 2:], params=params)
+        assert predicted[k] == pytest.approx(np.std(tri.points[:, 2]), rel=0.1)

@@ -408,6 +408,8 @@ def dense_surface(
     image: np.ndarray,
     region: tuple[int, int, int, int] | None = None,
     settings: DenseSettings | None = None,
+    param_cov: np.ndarray | None = None,
+    misfit_cov: np.ndarray | None = None,
 ) -> DenseSurface:
     """Depth, sigma and status of every left pixel of a region (see the module notes).
 
@@ -419,6 +421,13 @@ def dense_surface(
     region : (u0, v0, u1, v1), optional
         Left-half pixel rectangle (columns ``u0 <= u < u1``); default the whole half.
     settings : DenseSettings, optional
+    param_cov : ndarray, shape (F, F), optional
+        Covariance of the model's free parameters (``free_mask`` order).
+    misfit_cov : ndarray, shape (4, 4), optional
+        The model misfit's covariance of one point's ``u_L, v_L, u_R, v_R``, px^2
+        (:meth:`~endomeasure.solvers.misfit.ModelMisfit.covariance`). Their share of each
+        depth's sigma is added (:func:`_calibration_sigma`); without both, the sigma is
+        the match's alone.
 
     Returns
     -------
@@ -487,6 +496,11 @@ def dense_surface(
         )
         depth[ok] = 1.0 / w_in[ok]
         sigma_depth[ok] = prop.std
+        if param_cov is not None or misfit_cov is not None:
+            ql = np.stack(np.meshgrid(np.arange(u0, u1, dtype=float),
+                                      np.arange(v0, v1, dtype=float)), -1)  # fmt: skip
+            cal = _calibration_sigma(model, param_cov, misfit_cov, ql[ok], q_r.pixels[inner][ok])
+            sigma_depth[ok] = np.hypot(sigma_depth[ok], cal)
     o, d = rays.origins[inner], rays.directions[inner]
     with np.errstate(invalid="ignore"):
         t = (depth - o[..., 2]) / d[..., 2]
@@ -584,6 +598,59 @@ def _match_at(model, rays, w, ref, right: _RightHalf, noise, settings: DenseSett
         precision = match_precision(energy, n, 1.0 / np.abs(gain), noise_l, noise_r, misfit, 1.0)
         sigma_w = precision / rate
     return q_r, score, precision, sigma_w
+
+
+_CALIBRATION_NODES = 400
+"""Matches at which the calibration's share of the depth sigma is computed exactly; it
+varies smoothly over the image, and is interpolated in between."""
+
+
+def _calibration_sigma(model, param_cov, misfit_cov, left, right) -> np.ndarray:
+    """The calibration's share of each match's depth sigma, mm.
+
+    The unscented transform, through triangulating the match's pixel pair, of the free
+    parameters' covariance (the rays move with the parameters; the match is image data)
+    and of the model misfit's pixel offsets ``u_L, v_L, u_R, v_R`` of one point (4 x 4,
+    px^2; what the residuals hold beyond noise, which a point's depth carries like a
+    matching error). Computed at :data:`_CALIBRATION_NODES` matches spread over the list
+    and interpolated linearly (nearest outside their hull): both vary smoothly."""
+    from scipy.interpolate import griddata
+    from scipy.linalg import block_diag
+    from scipy.spatial import QhullError
+
+    from endomeasure.solvers.triangulate import triangulate
+    from endomeasure.solvers.uncertainty import unscented
+
+    free = np.flatnonzero(model.free_mask)
+    param_cov = np.zeros((0, 0)) if param_cov is None else np.asarray(param_cov, float)
+    misfit_cov = np.zeros((4, 4)) if misfit_cov is None else np.asarray(misfit_cov, float)
+    n_par = param_cov.shape[0]
+    step = max(1, left.shape[0] // _CALIBRATION_NODES)
+    nodes_l, nodes_r = left[::step], right[::step]
+
+    def depth_of(x):  # (M, K, F + 4) -> (M, K)
+        lead = x.shape[:2]
+        params = None
+        if n_par:
+            params = np.broadcast_to(model.params, (*lead, model.params.size)).copy()
+            params[..., free] = x[..., :n_par]
+        ql = nodes_l[:, None] + x[..., n_par : n_par + 2]
+        qr = nodes_r[:, None] + x[..., n_par + 2 :]
+        tri = triangulate(model, ql, qr, params=params)
+        return np.where(tri.status == 0, tri.points[..., 2], np.nan)
+
+    mean = np.concatenate([model.params[free] if n_par else np.zeros(0), np.zeros(4)])
+    x0 = np.broadcast_to(mean, (nodes_l.shape[0], mean.size))
+    sigma = unscented(depth_of, x0, block_diag(param_cov, misfit_cov)).std
+    good = np.isfinite(sigma)
+    if not good.any():
+        return np.zeros(left.shape[0])
+    near = griddata(nodes_l[good], sigma[good], left, method="nearest")
+    try:  # nodes on one line (a thin region) have no hull: the nearest node's then
+        out = griddata(nodes_l[good], sigma[good], left, method="linear")
+    except (QhullError, ValueError):
+        return near
+    return np.where(np.isfinite(out), out, near)
 
 
 def _signal_score(ncc, ref, other, n: int) -> np.ndarray:

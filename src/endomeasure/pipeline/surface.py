@@ -97,6 +97,8 @@ def surface(
     GoalNotMetError
         No pixel of the region could be measured (nothing is stored).
     """
+    import numpy as np
+
     from endomeasure.errors import GoalNotMetError
     from endomeasure.io import records
     from endomeasure.io.session import edit_session, open_session
@@ -120,7 +122,9 @@ def surface(
         pixels = reader.image(image)
     if pixels.ndim == 3:
         pixels = pixels[..., :3].mean(axis=2)
-    result = dense_surface(cm.model, pixels, clipped, settings)
+    misfit = None if cm.misfit is None else cm.misfit.covariance(np.zeros((1, 2)))
+    result = dense_surface(cm.model, pixels, clipped, settings, param_cov=cm.param_cov,
+                           misfit_cov=misfit)  # fmt: skip
     ok = result.status == DenseStatus.OK
     if not ok.any():
         raise GoalNotMetError(
