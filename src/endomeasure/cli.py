@@ -1315,6 +1315,27 @@ PlaneRightOption = Annotated[
 ]
 
 
+RightOption = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--right",
+        help="The same point in the right half, U,V px (repeat); leave out to find it.",
+    ),
+]
+KindOption = Annotated[
+    str,
+    typer.Option(
+        "--kind", help="length, point-line, depth, area, polyline, profile or area-profile."
+    ),
+]
+SamplesOption = Annotated[
+    int | None,
+    typer.Option("--samples", help="profile: samples per profile (default ~1 per px)."),
+]
+SlicesOption = Annotated[
+    int | None,
+    typer.Option("--slices", help="area-profile: slices between the lines (default 5)."),
+]
 RefOption = Annotated[
     list[str] | None,
     typer.Option(
@@ -1340,20 +1361,8 @@ def measure(
         list[str] | None,
         typer.Option("--left", help="A point in the left half, U,V px (repeat per point)."),
     ] = None,
-    right: Annotated[
-        list[str] | None,
-        typer.Option(
-            "--right",
-            help="The same point in the right half, U,V px (repeat); leave out to find it.",
-        ),
-    ] = None,
-    kind: Annotated[
-        str,
-        typer.Option(
-            "--kind",
-            help="length, point-line, depth, area, polyline, profile or area-profile.",
-        ),
-    ] = "length",
+    right: RightOption = None,
+    kind: KindOption = "length",
     plane: PlaneOption = None,
     plane_right: PlaneRightOption = None,
     warn_percent: Annotated[
@@ -1384,14 +1393,8 @@ def measure(
         typer.Option("--patch", help="Automatic matching: correlation patch side, px (odd)."),
     ] = defaults.PATCH_PX,
     ref: RefOption = None,
-    samples: Annotated[
-        int | None,
-        typer.Option("--samples", help="profile: samples per profile (default ~1 per px)."),
-    ] = None,
-    slices: Annotated[
-        int | None,
-        typer.Option("--slices", help="area-profile: slices between the lines (default 5)."),
-    ] = None,
+    samples: SamplesOption = None,
+    slices: SlicesOption = None,
     wait_s: WaitOption = defaults.LOCK_WAIT_S,
     json_output: JsonOption = False,
 ) -> None:
@@ -1402,10 +1405,8 @@ def measure(
     round without --left); a point the search refuses (untextured, repeated texture,
     not seen by both halves) stops the measurement with exit 1. It is stored in the
     session with its uncertainty (unscented transform of the image noise and the
-    calibration covariance). --kind profile (2 --left points: the path) and area-profile
-    (4: reference lines 1-2 and 3-4): the dense surface's height against a reference
-    plane (3 --ref points, or a best fit), deepest and highest point with their +-
-    (docs/profile.md). --plane x3: the points are placed where their left ray meets
+    calibration covariance). --kind profile / area-profile: docs/profile.md. --plane x3:
+    the points are placed where their left ray meets
     the plane through three other points (a depth's 4th point only), e.g. a missing
     corner. --board-test: x-/y-segments, point-to-plane distances and square areas on
     every test image, mean error and std per zone, kind and model.
@@ -1422,11 +1423,9 @@ def measure(
 
     _refuse_given(ctx, ("zone_mm",), "without --board-test", "leave it out")
     if kind in ("profile", "area-profile"):
-        _measure_profile(ctx, session, model, image, left, kind, ref, samples, slices, patch,
-                         plot, json_output)  # fmt: skip
-        return
-    _refuse_given(ctx, ("ref", "samples", "slices"), f"with --kind {kind}",
-                  "they belong to --kind profile / area-profile")  # fmt: skip
+        return _measure_profile(ctx, session, model, image, left, kind, ref, samples, slices,
+                                patch, plot, json_output)  # fmt: skip
+    _refuse_given(ctx, ("ref", "samples", "slices"), f"with --kind {kind}", "they are a profile's")
 
     if image is None:
         raise BadInputError("a measurement needs --image NAME", hint="or use --board-test")
