@@ -48,6 +48,7 @@ ACCURACY_RUNS := \
 	"bench/misfit_designs.py $(ACCURACY_WORK)/designs --default $(ACCURACY_WORK)/accuracy.h5" \
 	"bench/operator_designs.py $(ACCURACY_WORK)/designs" \
 	"bench/accuracy_dense.py --session $(DEMO_DIR)/demo.h5 --designs $(ACCURACY_WORK)/designs" \
+	"bench/accuracy_profile.py --session $(DEMO_DIR)/demo.h5" \
 	"bench/accuracy_dense_sgbm.py --session $(DEMO_DIR)/demo.h5" \
 	"bench/accuracy_plane.py" \
 	"bench/figure5.py $(ACCURACY_WORK)/accuracy.h5 $(ACCURACY_WORK)/designs/design_005.h5" \

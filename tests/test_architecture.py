@@ -288,6 +288,10 @@ PIPELINE_COMPOSERS = {
         "endomeasure.pipeline.info": "the report's session overview is what `info` shows",
         "endomeasure.pipeline.predict": "its trust map is `predict-error --map` of each model",
     },
+    "endomeasure.pipeline.profile": {
+        "endomeasure.pipeline.measure": "a profile is a `measure` kind: its reference points are "
+        "measure's operator points (the same checks, search, triangulation and refusal)",
+    },
 }
 """Pipeline modules that show what other commands compute, with the reason."""
 

@@ -1315,6 +1315,37 @@ PlaneRightOption = Annotated[
 ]
 
 
+RightOption = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--right",
+        help="The same point in the right half, U,V px (repeat); leave out to find it.",
+    ),
+]
+KindOption = Annotated[
+    str,
+    typer.Option(
+        "--kind", help="length, point-line, depth, area, polyline, profile or area-profile."
+    ),
+]
+SamplesOption = Annotated[
+    int | None,
+    typer.Option("--samples", help="profile: samples per profile (default ~1 per px)."),
+]
+SlicesOption = Annotated[
+    int | None,
+    typer.Option("--slices", help="area-profile: slices between the lines (default 5)."),
+]
+RefOption = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--ref",
+        help="profile: a reference-plane point in the left half, U,V px (three times); "
+        "default: the best-fit plane.",
+    ),
+]
+
+
 @command("measure")
 def measure(
     ctx: typer.Context,
@@ -1330,16 +1361,8 @@ def measure(
         list[str] | None,
         typer.Option("--left", help="A point in the left half, U,V px (repeat per point)."),
     ] = None,
-    right: Annotated[
-        list[str] | None,
-        typer.Option(
-            "--right",
-            help="The same point in the right half, U,V px (repeat); leave out to find it.",
-        ),
-    ] = None,
-    kind: Annotated[
-        str, typer.Option("--kind", help="length, point-line, depth, area or polyline.")
-    ] = "length",
+    right: RightOption = None,
+    kind: KindOption = "length",
     plane: PlaneOption = None,
     plane_right: PlaneRightOption = None,
     warn_percent: Annotated[
@@ -1369,6 +1392,9 @@ def measure(
         int,
         typer.Option("--patch", help="Automatic matching: correlation patch side, px (odd)."),
     ] = defaults.PATCH_PX,
+    ref: RefOption = None,
+    samples: SamplesOption = None,
+    slices: SlicesOption = None,
     wait_s: WaitOption = defaults.LOCK_WAIT_S,
     json_output: JsonOption = False,
 ) -> None:
@@ -1379,14 +1405,15 @@ def measure(
     round without --left); a point the search refuses (untextured, repeated texture,
     not seen by both halves) stops the measurement with exit 1. It is stored in the
     session with its uncertainty (unscented transform of the image noise and the
-    calibration covariance). --plane x3: the points are placed where their left ray meets
+    calibration covariance). --kind profile / area-profile: docs/profile.md. --plane x3:
+    the points are placed where their left ray meets
     the plane through three other points (a depth's 4th point only), e.g. a missing
     corner. --board-test: x-/y-segments, point-to-plane distances and square areas on
     every test image, mean error and std per zone, kind and model.
     """
     if board_test:
         points_only = ("image", "left", "right", "kind", "warn_percent", "sigma", "patch",
-                       "plane", "plane_right")  # fmt: skip
+                       "plane", "plane_right", "ref", "samples", "slices")  # fmt: skip
         _refuse_given(ctx, points_only, "with --board-test", "leave them out")
         _measure_board_test(session, model, zone_mm, plot, json_output)
         return
@@ -1395,6 +1422,10 @@ def measure(
     from endomeasure.pipeline.measure import MatchRefusedError, measure_points
 
     _refuse_given(ctx, ("zone_mm",), "without --board-test", "leave it out")
+    if kind in ("profile", "area-profile"):
+        return _measure_profile(ctx, session, model, image, left, kind, ref, samples, slices,
+                                patch, plot, json_output)  # fmt: skip
+    _refuse_given(ctx, ("ref", "samples", "slices"), f"with --kind {kind}", "they are a profile's")
 
     if image is None:
         raise BadInputError("a measurement needs --image NAME", hint="or use --board-test")
@@ -1433,6 +1464,74 @@ def measure(
     _render_measurement(console, report)
     if report.plot:
         console.print(f"plot: {report.plot}")
+
+
+def _measure_profile(ctx, session, model, image, left, kind, ref, samples, slices, patch, plot,
+                     json_output) -> None:  # fmt: skip
+    from endomeasure.errors import BadInputError
+    from endomeasure.pipeline.measure import MatchRefusedError
+    from endomeasure.pipeline.profile import measure_profile
+
+    _refuse_given(ctx, ("right", "sigma", "warn_percent", "plane", "plane_right"),
+                  f"with --kind {kind}", "a profile's path is left-half pixels; its +- comes "
+                  "from the dense surface")  # fmt: skip
+    if image is None:
+        raise BadInputError("a measurement needs --image NAME", hint="or use --board-test")
+    try:
+        report = measure_profile(
+            session, model, image, None if not left else [parse_pixel(t) for t in left], kind,
+            refs=None if not ref else [parse_pixel(t) for t in ref], samples=samples,
+            slices=slices, patch=patch, plot=plot,
+        )  # fmt: skip
+    except MatchRefusedError as exc:
+        _report_refusal(exc, json_output, session=str(session), model=model, image=image,
+                        kind=kind)  # fmt: skip
+        raise
+    if json_output:
+        document = report.to_dict()
+        document["measured"] = True
+        _print_json(document)
+        return
+    _render_profile(_stderr_console(), report)
+
+
+def _render_profile(console: Console, r: Any) -> None:
+    from rich.table import Table
+
+    plane = r.plane
+    table = Table(title=f"{r.kind} on {r.image} ({r.model})", title_justify="left")
+    for column in ("slice", "point", "height mm", "+- mm (1 sigma)", "position mm",
+                   "position px", "pixel", "coverage %", "gaps"):  # fmt: skip
+        table.add_column(column, justify="left" if column in ("point", "gaps") else "right")
+    for k, p in enumerate(r.profiles, 1):
+        for name, e in (("deepest", p.deepest), ("highest", p.highest)):
+            table.add_row(
+                str(k) + (" *" if k - 1 == r.extreme_slice else ""), name,
+                f"{e.height_mm:+.4f}", f"{e.sigma_mm:.4f}", f"{e.position_mm:.3f}",
+                f"{e.position_px:.1f}", "{:.1f},{:.1f}".format(*e.pixel),
+                f"{100 * p.coverage:.1f}", str(len(p.gaps)) + (" (touches it)" if e.at_gap else ""),
+            )  # fmt: skip
+    _print_table(console, table)
+    e = r.extreme
+    console.print(
+        f"extreme: {e.height_mm:+.4f} mm +- {e.sigma_mm:.4f} mm (1 sigma) at "
+        f"{e.position_mm:.3f} mm along slice {r.extreme_slice + 1} (pixel "
+        f"{e.pixel[0]:.1f},{e.pixel[1]:.1f}); heights positive towards the probe",
+        markup=False,
+    )
+    console.print(
+        f"reference plane: {plane.source} ({plane.points} points"
+        + (f", {plane.rejected} outliers left out" if plane.rejected else "")
+        + (f", RMS {plane.rms_mm:.4f} mm" if plane.source == "best fit" else "")
+        + f"), offset +- {plane.cov[2, 2] ** 0.5:.4f} mm",
+        markup=False,
+    )
+    if r.warning:
+        console.print(f"[bold red]WARNING: {r.warning}[/bold red]")
+    if r.record:
+        console.print(f"stored as profile {r.record} in {r.session}", markup=False)
+    if r.plot:
+        console.print(f"plot: {r.plot}", markup=False)
 
 
 def _measure_board_test(session, model, zone_mm, plot, json_output) -> None:

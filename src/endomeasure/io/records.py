@@ -45,6 +45,9 @@ __all__ = [
     "SURFACE_RECORD",
     "surface_record",
     "surface_record_name",
+    "PROFILE_RECORD",
+    "next_profile_name",
+    "profile_record",
 ]
 
 MEASUREMENT_RECORD = "measurement"
@@ -673,3 +676,87 @@ def surface_record(
         arrays=arrays,
         units=units,
     )
+
+
+# ----- depth profiles written by `measure --kind profile | area-profile` -----------------------
+
+PROFILE_RECORD = "profile"
+_PROFILE_NAME = re.compile(r"^p(\d+)$")
+
+
+def next_profile_name(names: Sequence[str]) -> str:
+    """The next free profile id: ``p001``, ``p002``, ..."""
+    numbers = [int(m.group(1)) for n in names if (m := _PROFILE_NAME.match(n))]
+    return f"p{max(numbers, default=0) + 1:03d}"
+
+
+def profile_record(name: str, report) -> Record:
+    """The ``records/profile/<name>`` entry of a profile report (``ProfileReport``).
+
+    Attributes: ``model``, ``image``, ``measurement_kind`` (``profile`` or
+    ``area-profile``), the extreme (``extreme_height``, ``extreme_sigma``,
+    ``extreme_position``, ``extreme_slice``, ``extreme_at_gap``), the deepest and highest
+    of the extreme slice, the plane (``plane_source``, ``plane_points``,
+    ``plane_rejected``, ``plane_rms``), ``created``. Arrays, over all samples of all
+    slices in order: ``sample_slice`` (int32), ``sample_pixel`` (n, 2) px,
+    ``sample_status`` (uint8, the dense status), ``sample_height``, ``sample_sigma``
+    (mm, NaN in gaps; + towards the probe), ``sample_position`` (mm along the path in
+    the plane), ``sample_position_px``; ``left_px`` the operator's points; ``plane_origin``
+    (3,) mm, ``plane_normal`` (3,), ``plane_cov`` (3, 3) of its two tilts (1) and offset
+    (mm); with reference points ``ref_left_px``, ``ref_right_px``, ``ref_points`` (mm).
+    """
+    profiles = report.profiles
+    e = report.extreme
+    best = profiles[report.extreme_slice]
+    plane = report.plane
+
+    def cat(field):
+        return np.concatenate([np.asarray(getattr(p.samples, field)) for p in profiles])
+
+    arrays = {
+        "left_px": np.asarray(report.left, dtype=np.float64),
+        "sample_slice": np.concatenate(
+            [np.full(p.samples.height.size, k, dtype=np.int32) for k, p in enumerate(profiles)]
+        ),
+        "sample_pixel": cat("pixels").astype(np.float64),
+        "sample_status": cat("status").astype(np.uint8),
+        "sample_height": cat("height"),
+        "sample_sigma": cat("sigma"),
+        "sample_position": cat("position_mm"),
+        "sample_position_px": cat("position_px"),
+        "plane_origin": np.asarray(plane.origin, dtype=np.float64),
+        "plane_normal": np.asarray(plane.normal, dtype=np.float64),
+        "plane_cov": np.asarray(plane.cov, dtype=np.float64),
+    }
+    if report.refs:
+        arrays["ref_left_px"] = np.array([r["left_px"] for r in report.refs])
+        arrays["ref_right_px"] = np.array([r["right_px"] for r in report.refs])
+        arrays["ref_points"] = np.array([r["xyz_mm"] for r in report.refs])
+    attrs = {
+        "model": report.model,
+        "image": report.image,
+        "measurement_kind": report.kind,
+        "extreme_height": e.height_mm,
+        "extreme_sigma": e.sigma_mm,
+        "extreme_position": e.position_mm,
+        "extreme_slice": int(report.extreme_slice),
+        "extreme_at_gap": bool(e.at_gap),
+        "deepest_height": best.deepest.height_mm,
+        "deepest_sigma": best.deepest.sigma_mm,
+        "highest_height": best.highest.height_mm,
+        "highest_sigma": best.highest.sigma_mm,
+        "coverage": float(np.mean([p.coverage for p in profiles])),
+        "plane_source": plane.source,
+        "plane_points": int(plane.points),
+        "plane_rejected": int(plane.rejected),
+        "plane_rms": float(plane.rms_mm),
+        "region": list(report.region),
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    }
+    mm = ("extreme_height", "extreme_sigma", "extreme_position", "deepest_height",
+          "deepest_sigma", "highest_height", "highest_sigma", "plane_rms", "sample_height",
+          "sample_sigma", "sample_position", "plane_origin", "ref_points")  # fmt: skip
+    units = {k: "mm" for k in mm if k in attrs or k in arrays}
+    units.update({k: "px" for k in ("left_px", "sample_pixel", "sample_position_px",
+                                    "ref_left_px", "ref_right_px") if k in arrays})  # fmt: skip
+    return Record(PROFILE_RECORD, name, attrs=attrs, arrays=arrays, units=units)

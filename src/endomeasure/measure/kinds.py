@@ -11,7 +11,15 @@ depth       4        signed distance from the 4th point to the plane through the
                      first three, mm (sign convention below)
 area        >= 3     area of the polygon, mm^2
 polyline    >= 2     total length of the path, mm
+profile     2        the surface's height along the path between the points against a
+                     reference plane (+3 reference points, or a best fit); deepest and
+                     highest point (:mod:`endomeasure.measure.profile`)
+area-prof.  4        profiles between two reference lines (points 1-2 and 3-4); the
+                     slice holding the extreme (``area-profile``)
 =========== ======== ==============================================================
+
+``profile`` and ``area-profile`` are measured on the dense surface, not from the
+triangulated points alone (``KindSpec.dense``): their function refuses to be evaluated.
 
 Two layers:
 
@@ -53,6 +61,7 @@ __all__ = [
     "check_count",
     "KINDS",
     "KindSpec",
+    "POINT_KINDS",
     "kind_spec",
     "length",
     "point_line",
@@ -207,6 +216,19 @@ class KindSpec(NamedTuple):
     max_points: int | None  # None: any number >= min_points
     unit: str
     description: str
+    dense: bool = False
+    """Measured on the dense surface (:mod:`endomeasure.measure.profile`), not a function
+    of the points."""
+
+
+def _dense_only(kind: str) -> Callable[[np.ndarray], np.ndarray]:
+    def refuse(points: np.ndarray) -> np.ndarray:
+        raise BadInputError(
+            f"{kind} is measured on the dense surface, not from its points alone",
+            hint=f"use `endomeasure measure SESSION --image NAME --kind {kind} --left U,V ...`",
+        )
+
+    return refuse
 
 
 KINDS: dict[str, KindSpec] = {
@@ -224,8 +246,22 @@ KINDS: dict[str, KindSpec] = {
         ),
         KindSpec("area", area, 3, None, "mm^2", "area of the polygon through the points"),
         KindSpec("polyline", polyline, 2, None, "mm", "total length of the path"),
+        KindSpec(
+            "profile", _dense_only("profile"), 2, 2, "mm",
+            "the surface's height along the path between the two points against a reference "
+            "plane (positive towards the probe)", dense=True,
+        ),
+        KindSpec(
+            "area-profile", _dense_only("area-profile"), 4, 4, "mm",
+            "profiles between reference line 1 (points 1-2) and line 2 (points 3-4)",
+            dense=True,
+        ),
     )
 }  # fmt: skip
+
+POINT_KINDS = tuple(name for name, spec in KINDS.items() if not spec.dense)
+"""The kinds that are functions of their triangulated points (what ``predict-error``
+propagates)."""
 
 
 def kind_spec(kind: str) -> KindSpec:

@@ -253,6 +253,11 @@ def _checked_request(kind, left, right, warn_percent, plot) -> _Request:
     from endomeasure.measure.kinds import kind_spec
 
     spec = kind_spec(kind)
+    if spec.dense:  # measured on the dense surface: pipeline.profile.measure_profile
+        raise BadInputError(
+            f"{kind} is measured on the dense surface, not from triangulated points",
+            hint=f"use `endomeasure measure SESSION --image NAME --kind {kind} --left U,V ...`",
+        )
     if not (math.isfinite(warn_percent) and warn_percent > 0):
         raise BadInputError(
             f"the warning threshold must be a positive percentage, not {warn_percent}"
