@@ -70,7 +70,9 @@ def frame(label, cm, preset, target, image, settings) -> Frame:
     from endomeasure.simulate.truth import true_depth
 
     start = time.perf_counter()
-    surface = dense_surface(cm.model, image, None, settings)
+    misfit = None if cm.misfit is None else cm.misfit.covariance(np.zeros((1, 2)))
+    surface = dense_surface(cm.model, image, None, settings, param_cov=cm.param_cov,
+                            misfit_cov=misfit)  # fmt: skip  (as `endomeasure surface`)
     seconds = time.perf_counter() - start
     ratio = seconds / _sgbm_seconds(image, cm.model.config.split)
     u0, v0, u1, v1 = surface.region
@@ -102,7 +104,7 @@ def _row(f: Frame) -> str:
 
 
 def default_frames(session: Path, settings_for) -> list[Frame]:
-    from endomeasure.io.records import load_calibrated_model
+    from endomeasure.pipeline import calibrated_model
     from endomeasure.io.session import open_session
     from endomeasure.simulate.preset import load_preset
     from endomeasure.simulate.scenes import plan_set
@@ -110,7 +112,7 @@ def default_frames(session: Path, settings_for) -> list[Frame]:
     preset = load_preset("default")
     shots = {s.name: s for s in plan_set(preset, "scene", 0)}
     with open_session(session) as reader:
-        cm = load_calibrated_model(reader, "raytrace", session)
+        cm = calibrated_model(reader, "raytrace", session)
         images = {n: reader.image(n) for n in sorted(shots) if n in reader.image_names()}
     settings = settings_for(cm)
     return [frame(n, cm, preset, shots[n].target, im, settings) for n, im in images.items()]
@@ -122,7 +124,7 @@ def design_frames(work: Path, seed: int, images: int, settings_for) -> list[Fram
     import cv2
 
     from endomeasure.errors import EndomeasureError
-    from endomeasure.io.records import load_calibrated_model
+    from endomeasure.pipeline import calibrated_model
     from endomeasure.io.session import open_session
     from endomeasure.simulate.preset import load_preset
     from endomeasure.simulate.scenes import plan_set
@@ -130,7 +132,7 @@ def design_frames(work: Path, seed: int, images: int, settings_for) -> list[Fram
     session, folder = work / f"design_{seed:03d}.h5", work / f"design_{seed:03d}_scene"
     try:
         with open_session(session) as reader:
-            cm = load_calibrated_model(reader, "raytrace", session)
+            cm = calibrated_model(reader, "raytrace", session)
     except (EndomeasureError, OSError):
         return []
     if not (folder / "simulation.json").exists():
