@@ -104,8 +104,8 @@ def _row(f: Frame) -> str:
 
 
 def default_frames(session: Path, settings_for) -> list[Frame]:
-    from endomeasure.pipeline import calibrated_model
     from endomeasure.io.session import open_session
+    from endomeasure.pipeline import calibrated_model
     from endomeasure.simulate.preset import load_preset
     from endomeasure.simulate.scenes import plan_set
 
@@ -124,8 +124,8 @@ def design_frames(work: Path, seed: int, images: int, settings_for) -> list[Fram
     import cv2
 
     from endomeasure.errors import EndomeasureError
-    from endomeasure.pipeline import calibrated_model
     from endomeasure.io.session import open_session
+    from endomeasure.pipeline import calibrated_model
     from endomeasure.simulate.preset import load_preset
     from endomeasure.simulate.scenes import plan_set
 
