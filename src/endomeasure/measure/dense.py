@@ -210,8 +210,10 @@ class _Frame(NamedTuple):
 
 
 def _plane_maps(model, frame: _Frame, w: np.ndarray, grid_px: int):
-    """Other-half pixel of every reference pixel on each constant-z plane, (K, h, w, 2)
-    float32, interpolated bilinearly from exact projections on a grid (NaN: not seen)."""
+    """Other-half pixel of every reference pixel on each constant-z plane, one (h, w, 2)
+    float32 map per plane in turn (a generator: K full-size maps at once would take
+    gigabytes on a large sensor), interpolated bilinearly from exact projections on a
+    grid (NaN: not seen)."""
     import cv2
 
     gu = _grid(frame.u0, frame.u1, grid_px)
@@ -227,12 +229,8 @@ def _plane_maps(model, frame: _Frame, w: np.ndarray, grid_px: int):
     mx = np.interp(uu, gu, np.arange(gu.size)).astype(np.float32)
     my = np.interp(vv, gv, np.arange(gv.size)).astype(np.float32)
     map_x, map_y = np.meshgrid(mx, my)
-    out = np.empty((w.size, map_x.shape[0], map_x.shape[1], 2), dtype=np.float32)
     for k in range(w.size):
-        out[k] = cv2.remap(
-            field[k], map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-        )
-    return out
+        yield cv2.remap(field[k], map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def _levels(model, frame: _Frame, settings: DenseSettings) -> np.ndarray:
@@ -360,20 +358,30 @@ def _coarse(model, grey, frame: _Frame, levels: np.ndarray, settings: DenseSetti
         other[:, split:] = np.nan
     other = other.astype(np.float32)
     ref = _ref_stats(grey[frame.v0 : frame.v1, frame.u0 : frame.u1], settings.window_px)
-    maps = _plane_maps(model, frame, levels, settings.grid_px)
-    volume = np.full((levels.size, *maps.shape[1:3]), np.nan, dtype=np.float32)
-    for k in range(levels.size):
-        mx = np.nan_to_num(maps[k, ..., 0], nan=-1e6)
-        my = np.nan_to_num(maps[k, ..., 1], nan=-1e6)
+    shape = (frame.v1 - frame.v0, frame.u1 - frame.u0)
+    # streamed over the levels (no (K, h, w) volume): the best level so far, its score and
+    # its neighbours' scores, as an argmax over the volume would give them
+    best = np.zeros(shape, dtype=np.intp)
+    best_key = np.full(shape, -np.inf)
+    y0, y_minus, y_plus = (np.full(shape, np.nan) for _ in range(3))
+    previous = np.full(shape, np.nan)
+    seen = np.zeros(shape, dtype=bool)
+    last = levels.size - 1
+    for k, plane in enumerate(_plane_maps(model, frame, levels, settings.grid_px)):
+        mx = np.nan_to_num(plane[..., 0], nan=-1e6)
+        my = np.nan_to_num(plane[..., 1], nan=-1e6)
         warped = cv2.remap(other, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                            borderValue=float("nan"))  # fmt: skip
-        volume[k] = _zncc(ref, warped.astype(np.float64), settings.window_px)[0]
-    seen = np.isfinite(volume).any(axis=0)
-    best = np.argmax(np.nan_to_num(volume, nan=-2.0), axis=0)
-    rows, cols = np.indices(best.shape)
-    y0 = volume[best, rows, cols]
-    y_minus = volume[np.maximum(best - 1, 0), rows, cols]
-    y_plus = volume[np.minimum(best + 1, levels.size - 1), rows, cols]
+        score = _zncc(ref, warped.astype(np.float64), settings.window_px)[0]
+        after_best = best == k - 1
+        y_plus[after_best] = score[after_best]
+        key = np.nan_to_num(score, nan=-2.0)
+        better = key > best_key
+        best[better], best_key[better], y0[better] = k, key[better], score[better]
+        y_minus[better] = (previous if k else score)[better]
+        y_plus[better] = score[better] if k == last else np.nan
+        previous = score
+        seen |= np.isfinite(score)
     # a neighbour level whose window leaves the other half (the overlap's edge) only loses
     # the parabola (the refinement decides); the peak at a level of the range's ends is
     # not a peak
