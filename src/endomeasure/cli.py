@@ -1419,7 +1419,7 @@ def measure(
         return
 
     from endomeasure.errors import BadInputError
-    from endomeasure.pipeline.measure import MatchRefusedError, measure_points
+    from endomeasure.pipeline.measure import measure_points
 
     _refuse_given(ctx, ("zone_mm",), "without --board-test", "leave it out")
     if kind in ("profile", "area-profile"):
@@ -1433,8 +1433,9 @@ def measure(
         raise BadInputError(
             "a measurement needs its points: --left U,V per point (and optionally --right U,V)"
         )
-    try:
-        report = measure_points(
+
+    def run():
+        return measure_points(
             session,
             model,
             image,
@@ -1448,17 +1449,12 @@ def measure(
             plane=None if not plane else [parse_pixel(t) for t in plane],
             plane_right=None if not plane_right else [parse_pixel(t) for t in plane_right],
         )
-    except MatchRefusedError as exc:
-        # show what the search found before the one-line error (exit 1)
-        _report_refusal(exc, json_output, session=str(session), model=model, image=image,
-                        kind=kind)  # fmt: skip
-        raise
-    if json_output:
-        document = report.to_dict()
-        document["measured"] = True
-        _print_json(document)
-        return
-    console = _stderr_console()
+
+    _run_measurement(run, _render_points, json_output, session=str(session), model=model,
+                     image=image, kind=kind)  # fmt: skip
+
+
+def _render_points(console: Console, report: Any) -> None:
     if report.matched:
         _render_matches(console, report.matches)
     _render_measurement(console, report)
@@ -1466,10 +1462,27 @@ def measure(
         console.print(f"plot: {report.plot}")
 
 
+def _run_measurement(run, render, json_output: bool, **context) -> None:
+    """Run a measurement; on a refused match show what the search found before the
+    one-line error (exit 1); print the JSON document or render the report."""
+    from endomeasure.pipeline.measure import MatchRefusedError
+
+    try:
+        report = run()
+    except MatchRefusedError as exc:
+        _report_refusal(exc, json_output, **context)
+        raise
+    if json_output:
+        document = report.to_dict()
+        document["measured"] = True
+        _print_json(document)
+        return
+    render(_stderr_console(), report)
+
+
 def _measure_profile(ctx, session, model, image, left, kind, ref, samples, slices, patch, plot,
                      json_output) -> None:  # fmt: skip
     from endomeasure.errors import BadInputError
-    from endomeasure.pipeline.measure import MatchRefusedError
     from endomeasure.pipeline.profile import measure_profile
 
     _refuse_given(ctx, ("right", "sigma", "warn_percent", "plane", "plane_right"),
@@ -1477,22 +1490,16 @@ def _measure_profile(ctx, session, model, image, left, kind, ref, samples, slice
                   "from the dense surface")  # fmt: skip
     if image is None:
         raise BadInputError("a measurement needs --image NAME", hint="or use --board-test")
-    try:
-        report = measure_profile(
+
+    def run():
+        return measure_profile(
             session, model, image, None if not left else [parse_pixel(t) for t in left], kind,
             refs=None if not ref else [parse_pixel(t) for t in ref], samples=samples,
             slices=slices, patch=patch, plot=plot,
         )  # fmt: skip
-    except MatchRefusedError as exc:
-        _report_refusal(exc, json_output, session=str(session), model=model, image=image,
-                        kind=kind)  # fmt: skip
-        raise
-    if json_output:
-        document = report.to_dict()
-        document["measured"] = True
-        _print_json(document)
-        return
-    _render_profile(_stderr_console(), report)
+
+    _run_measurement(run, _render_profile, json_output, session=str(session), model=model,
+                     image=image, kind=kind)  # fmt: skip
 
 
 def _render_profile(console: Console, r: Any) -> None:
