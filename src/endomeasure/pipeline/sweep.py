@@ -92,6 +92,7 @@ def _serial(spec, todo, store, on_progress, total, done):
 
 def _client(scheduler: str | None, workers: int | None):
     """A Dask client of the scheduler, or of a new LocalCluster (and the cluster)."""
+    import dask
     from distributed import Client, LocalCluster
 
     if scheduler is not None:
@@ -103,13 +104,17 @@ def _client(scheduler: str | None, workers: int | None):
                 hint="give the address `dask scheduler` printed",
             ) from None
     n = workers or os.cpu_count() or 1
-    cluster = LocalCluster(
-        n_workers=n,
-        threads_per_worker=1,
-        processes=True,
-        dashboard_address=":0",
-        silence_logs=logging.ERROR,
-    )
+    # Dask's statistical profiler samples each worker's stacks every 10 ms in a thread of
+    # its own: on the sweep's deep solver stacks it cost 25-30 % of the CPU time per
+    # design (docs/benchmarks.md, the sweep section). The workers inherit this setting.
+    with dask.config.set({"distributed.worker.profile.enabled": False}):
+        cluster = LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=":0",
+            silence_logs=logging.ERROR,
+        )
     return Client(cluster), cluster, f"local cluster of {n} worker processes"
 
 
