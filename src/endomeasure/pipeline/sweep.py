@@ -90,10 +90,23 @@ def _serial(spec, todo, store, on_progress, total, done):
             on_progress(done, total)
 
 
+QUIET_CLUSTER = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "5s",
+    "distributed.worker.memory.monitor-interval": "1s",
+}
+"""Dask settings of the local cluster, which its worker processes inherit. A design takes
+seconds, so Dask's monitoring at 10-500 ms granularity only takes CPU from the designs:
+the statistical profiler (a thread sampling each worker's stacks every 10 ms), the
+event-loop ticks (20 ms), the system monitors (500 ms) and the nannies' memory polls
+(100 ms). What they cost is in docs/sweep.md, "Throughput"."""
+
+
 def _client(scheduler: str | None, workers: int | None):
     """A Dask client of the scheduler, or of a new LocalCluster (and the cluster)."""
     import dask
-    from distributed import Client, LocalCluster
+    from distributed import Client, LocalCluster  # loads the distributed.* defaults first
 
     if scheduler is not None:
         try:
@@ -104,10 +117,7 @@ def _client(scheduler: str | None, workers: int | None):
                 hint="give the address `dask scheduler` printed",
             ) from None
     n = workers or os.cpu_count() or 1
-    # Dask's statistical profiler samples each worker's stacks every 10 ms in a thread of
-    # its own: on the sweep's deep solver stacks it cost 25-30 % of the CPU time per
-    # design (docs/benchmarks.md, the sweep section). The workers inherit this setting.
-    with dask.config.set({"distributed.worker.profile.enabled": False}):
+    with dask.config.set(QUIET_CLUSTER):
         cluster = LocalCluster(
             n_workers=n,
             threads_per_worker=1,
