@@ -37,6 +37,8 @@ NOISE_RMS_PX = 0.05 * np.sqrt(2)  # the RMS length of the 2-D corner noise
 RMS_TOLERANCE = 0.3
 """A calibration leaves an RMS within 30 % of the noise's (a few hundred corners)."""
 SCHEDULER_WAIT_S = 40.0
+CLOCK_S = 1e-3
+"""Slack between the thread CPU clock and the wall clock (their resolutions)."""
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +68,7 @@ def test_a_serial_sweep_evaluates_every_design_with_real_figures(serial):
         assert r.n_points[0, 0, 0] > 10
         assert 0 < r.merit < 100  # % of a 1 mm segment at 30 mm
         assert 0 < r.sigmas[0, 0] < 0.05  # n_glass from 6 images
+        assert 0 < r.cpu_seconds <= r.seconds + CLOCK_S  # one thread's CPU within its wall
     assert serial.results[0].values[0] == 33.0
     assert serial.results[1].values[0] == 37.0
     assert serial.results[0].values[1] != serial.results[1].values[1]
@@ -76,6 +79,26 @@ def test_a_two_worker_local_cluster_gives_identical_results(spec_file, serial):
     local = run_sweep(spec_file, spec_file.with_name("local.h5"), workers=2)
     assert local.mode == "local cluster of 2 worker processes"
     _assert_same(serial, local)
+
+
+def test_local_workers_run_one_thread_with_the_quiet_dask_settings():
+    import dask
+
+    from endomeasure.pipeline.sweep import QUIET_CLUSTER, _client
+
+    client, cluster, _ = _client(None, 1)
+    try:
+        seen = client.run(
+            lambda dask_worker: (
+                {key: dask.config.get(key) for key in QUIET_CLUSTER},
+                dask_worker.state.nthreads,
+            )
+        )
+    finally:
+        client.close()
+        cluster.close()
+    assert list(seen.values()) == [(QUIET_CLUSTER, 1)]
+    assert QUIET_CLUSTER["distributed.worker.profile.enabled"] is False
 
 
 def _start(args, env, log: Path):
@@ -135,7 +158,9 @@ def test_an_interrupted_sweep_computes_only_the_missing_designs(spec_file, seria
     second = run_sweep(spec_file, out, workers=0)
     assert second.computed == [1]
     assert second.skipped == 1
-    assert second.results[0].seconds == first.results[0].seconds  # read back, not redone
+    # read back, not redone
+    assert second.results[0].seconds == first.results[0].seconds
+    assert second.results[0].cpu_seconds == first.results[0].cpu_seconds
     _assert_same(serial, second)
     third = run_sweep(spec_file, out, workers=0)
     assert third.computed == []

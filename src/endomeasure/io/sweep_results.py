@@ -3,8 +3,10 @@
 Layout: root attributes ``format`` (``endomeasure-sweep-results``), ``version``,
 ``spec`` (the spec's JSON), ``spec_digest`` (of the spec and its base preset),
 ``n_designs``, ``axes`` (JSON list); a group ``designs/NNNNNN`` per design with the
-attributes ``index``, ``seed``, ``cost``, ``seconds``, ``reasons`` (JSON list) and the
-datasets of :attr:`DesignResult.FIELDS`, and last the attribute ``complete``. The file
+attributes ``index``, ``seed``, ``cost``, ``seconds``, ``cpu_seconds`` (the evaluation's
+wall and CPU time; files written before ``cpu_seconds`` lack it), ``reasons`` (JSON
+list) and the datasets of :attr:`DesignResult.FIELDS`, and last the attribute
+``complete``. The file
 is opened for one design at a time and closed after it (so an interrupted sweep leaves
 every finished design readable); a group without ``complete`` is from a write that was
 cut short and is removed when the sweep resumes.
@@ -92,6 +94,7 @@ class SweepResultsFile:
                     "seed": int(result.seed),
                     "cost": float(result.cost),
                     "seconds": float(result.seconds),
+                    "cpu_seconds": float(result.cpu_seconds),
                     "reasons": json.dumps(list(result.reasons)),
                 }
             )
@@ -113,6 +116,7 @@ class SweepResultsFile:
                     seed=int(g.attrs["seed"]),
                     cost=float(g.attrs["cost"]),
                     seconds=float(g.attrs["seconds"]),
+                    cpu_seconds=float(g.attrs.get("cpu_seconds", np.nan)),
                     reasons=tuple(json.loads(g.attrs["reasons"])),
                 )
                 out.append(row)

@@ -90,9 +90,23 @@ def _serial(spec, todo, store, on_progress, total, done):
             on_progress(done, total)
 
 
+QUIET_CLUSTER = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "5s",
+    "distributed.worker.memory.monitor-interval": "1s",
+}
+"""Dask settings of the local cluster, which its worker processes inherit. A design takes
+seconds, so Dask's monitoring at 10-500 ms granularity only takes CPU from the designs:
+the statistical profiler (a thread sampling each worker's stacks every 10 ms), the
+event-loop ticks (20 ms), the system monitors (500 ms) and the nannies' memory polls
+(100 ms). What they cost is in docs/sweep.md, "Throughput"."""
+
+
 def _client(scheduler: str | None, workers: int | None):
     """A Dask client of the scheduler, or of a new LocalCluster (and the cluster)."""
-    from distributed import Client, LocalCluster
+    import dask
+    from distributed import Client, LocalCluster  # loads the distributed.* defaults first
 
     if scheduler is not None:
         try:
@@ -103,13 +117,14 @@ def _client(scheduler: str | None, workers: int | None):
                 hint="give the address `dask scheduler` printed",
             ) from None
     n = workers or os.cpu_count() or 1
-    cluster = LocalCluster(
-        n_workers=n,
-        threads_per_worker=1,
-        processes=True,
-        dashboard_address=":0",
-        silence_logs=logging.ERROR,
-    )
+    with dask.config.set(QUIET_CLUSTER):
+        cluster = LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=":0",
+            silence_logs=logging.ERROR,
+        )
     return Client(cluster), cluster, f"local cluster of {n} worker processes"
 
 

@@ -41,8 +41,9 @@ OK, WARNING, FAILED, INFEASIBLE = range(4)
 class DesignResult:
     """A design's evaluation; arrays over D draws, T templates, Z depths, S sigmas.
 
-    ``seconds`` is the evaluation's wall time (the only field that is not a function of
-    the spec and the index).
+    ``seconds`` and ``cpu_seconds`` are the evaluation's wall time and the CPU time of
+    the thread that ran it (the only fields that are not a function of the spec and the
+    index; ``cpu_seconds / seconds`` below 1 is time spent waiting for a core).
     """
 
     index: int
@@ -56,6 +57,7 @@ class DesignResult:
     n_points: np.ndarray  # (D, T, Z) template placements seen by both halves
     sigmas: np.ndarray  # (D, S) calibrated parameter standard deviations
     seconds: float = 0.0
+    cpu_seconds: float = float("nan")
 
     FIELDS = ("values", "status", "rms_px", "e95_pct", "n_points", "sigmas")
 
@@ -220,7 +222,7 @@ def evaluate_design(spec: SweepSpec, index: int) -> DesignResult:
 
     if not 0 <= int(index) < spec.n_designs:
         raise BadInputError(f"design index {index} is outside 0-{spec.n_designs - 1}")
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.thread_time()
     values = spec.design_values(index)
     nominal = spec.design_preset(index)
     seed_model = Preset.from_dict(nominal).truth_model if spec.start == "design" else None
@@ -238,4 +240,5 @@ def evaluate_design(spec: SweepSpec, index: int) -> DesignResult:
         n_points=np.stack(count),
         sigmas=np.stack(sigmas).reshape(spec.draws, len(spec.sigmas)),
         seconds=time.perf_counter() - t0,
+        cpu_seconds=time.thread_time() - cpu0,
     )
