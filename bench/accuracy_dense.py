@@ -71,8 +71,9 @@ def frame(label, cm, preset, target, image, settings) -> Frame:
 
     start = time.perf_counter()
     misfit = None if cm.misfit is None else cm.misfit.covariance(np.zeros((1, 2)))
-    surface = dense_surface(cm.model, image, None, settings, param_cov=cm.param_cov,
-                            misfit_cov=misfit)  # fmt: skip  (as `endomeasure surface`)
+    surface = dense_surface(
+        cm.model, image, None, settings, param_cov=cm.param_cov, misfit_cov=misfit
+    )  # fmt: skip  (as `endomeasure surface`)
     seconds = time.perf_counter() - start
     ratio = seconds / _sgbm_seconds(image, cm.model.config.split)
     u0, v0, u1, v1 = surface.region

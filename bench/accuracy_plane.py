@@ -27,52 +27,18 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
-from tests.pipeline.measure_data import model_record  # noqa: E402
+from tests.pipeline.measure_data import (  # noqa: E402
+    masked_corners,
+    model_record,
+    placed_position_std,
+)
 
 from _common import ACCURACY, Report, Target, script_parser  # noqa: E402
-from endomeasure.io.session import ImageRecord, edit_session, open_session  # noqa: E402
+from endomeasure.io.session import ImageRecord, edit_session  # noqa: E402
 from endomeasure.models import model_from_dict  # noqa: E402
-from endomeasure.pipeline import calibrated_model  # noqa: E402
 from endomeasure.pipeline.measure import MatchRefusedError, measure_points  # noqa: E402
 
 SAMPLES = ROOT / "sample_sessions"
-DISC_RADIUS_PX = 8
-"""Covers a corner and its X-junction (the 1 mm squares are 15-30 px wide here)."""
-
-
-def masked(image: np.ndarray, pixels) -> np.ndarray:
-    """``image`` with a disc of its median grey over each pixel (the missing corner)."""
-    out = image.copy()
-    for q in pixels:
-        centre = (int(round(q[0])), int(round(q[1])))
-        cv2.circle(out, centre, DISC_RADIUS_PX, int(np.median(image)), -1)
-    return out
-
-
-def position_std(session, report) -> np.ndarray:
-    """The UT std (3,) mm of the first measured point's x, y, z, with the noise and the
-    calibration covariance the measurement's +- used."""
-    from endomeasure.measure.kinds import PLANE_POINTS
-    from endomeasure.solvers.uncertainty import MeasurementFunction, propagate
-
-    with open_session(session) as reader:
-        cm = calibrated_model(reader, report.model, session)
-    pts = report.plane + report.points[:1]
-    ql = np.array([p.left for p in pts])
-    qr = np.where(np.isnan([p.right for p in pts]), ql, [p.right for p in pts])
-    on_plane = np.arange(len(pts)) >= PLANE_POINTS
-    from endomeasure.measure.predict import ImageNoise
-
-    noise = ImageNoise.per_point(report.noise.pixel_std[: len(pts)], report.noise.source)
-    cov, blocks = noise.covariance(len(pts), cm.param_cov)
-    std = []
-    for k in range(3):
-        f = MeasurementFunction(cm.model, lambda p, k=k: p[..., PLANE_POINTS, k], len(pts),
-                                with_params=True, on_plane=on_plane)  # fmt: skip
-        std.append(
-            float(propagate(f, f.inputs(ql[None], qr[None]), cov, "ut", blocks=blocks).std[0])
-        )
-    return np.array(std)
 
 
 def run(indices) -> list[dict]:
@@ -95,7 +61,7 @@ def run(indices) -> list[dict]:
             with edit_session(path, create=True) as w:
                 w.set_metadata(image_size=tuple(truth_model.config.image_size),
                                split=truth_model.config.split)  # fmt: skip
-                w.write_images([ImageRecord(name, masked(image, [ql[corner], qr[corner]]),
+                w.write_images([ImageRecord(name, masked_corners(image, [ql[corner], qr[corner]]),
                                             f"{name}.png", "0" * 64, "test")])  # fmt: skip
                 w.write_model(model_record("raytrace", truth_model))
             try:
@@ -106,7 +72,7 @@ def run(indices) -> list[dict]:
             except MatchRefusedError as exc:
                 rows.append({"image": name, "refused": str(exc)})
                 continue
-            std = position_std(path, r)
+            std = placed_position_std(path, r)
         err = np.array(r.points[0].xyz) - xyz[corner]
         square = truth["target"]["square_mm"]
         rows.append({"image": name, "z_mm": float(xyz[corner, 2]), "position_error": err.tolist(),

@@ -108,3 +108,46 @@ def build_session(
         for name in models:
             w.write_model(model_record(name, FACTORIES[name](), misfit))
     return path, truth
+
+
+DISC_RADIUS_PX = 8
+"""Radius of the constant-grey disc that masks a board corner (larger than the
+corner's correlation patch, so no trace of the corner is left)."""
+
+
+def masked_corners(image: np.ndarray, pixels) -> np.ndarray:
+    """A copy of ``image`` with a disc of its median grey over each pixel (a missing
+    corner, burnt-off edge or glare), for the measurement plane's checks."""
+    import cv2
+
+    out = image.copy()
+    for q in pixels:
+        centre = (int(round(q[0])), int(round(q[1])))
+        cv2.circle(out, centre, DISC_RADIUS_PX, int(np.median(image)), -1)
+    return out
+
+
+def placed_position_std(session, report) -> np.ndarray:
+    """The UT std (3,) mm of a ``--plane`` measurement's first placed point's x, y, z,
+    with the image noise and the calibration covariance its +- used."""
+    from endomeasure.io.session import open_session
+    from endomeasure.measure.kinds import PLANE_POINTS
+    from endomeasure.measure.predict import ImageNoise
+    from endomeasure.pipeline import calibrated_model
+    from endomeasure.solvers.uncertainty import MeasurementFunction, propagate
+
+    with open_session(session) as reader:
+        cm = calibrated_model(reader, report.model, session)
+    pts = report.plane + report.points[:1]
+    ql = np.array([p.left for p in pts])
+    qr = np.where(np.isnan([p.right for p in pts]), ql, [p.right for p in pts])
+    noise = ImageNoise.per_point(report.noise.pixel_std[: len(pts)], report.noise.source)
+    cov, blocks = noise.covariance(len(pts), cm.param_cov)
+    on_plane = np.arange(len(pts)) >= PLANE_POINTS
+    std = []
+    for k in range(3):
+        f = MeasurementFunction(cm.model, lambda p, k=k: p[..., PLANE_POINTS, k], len(pts),
+                                with_params=True, on_plane=on_plane)  # fmt: skip
+        pred = propagate(f, f.inputs(ql[None], qr[None]), cov, "ut", blocks=blocks)
+        std.append(float(pred.std[0]))
+    return np.array(std)

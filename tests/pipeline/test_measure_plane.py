@@ -17,18 +17,20 @@ import cv2
 import numpy as np
 import pytest
 from tests.conftest import make_pinhole_model, make_raytrace_model
-from tests.pipeline.measure_data import build_session, model_record
+from tests.pipeline.measure_data import (
+    build_session,
+    masked_corners,
+    model_record,
+    placed_position_std,
+)
 from typer.testing import CliRunner
 
 from endomeasure import cli
 from endomeasure.io.session import ImageRecord, edit_session, open_session
 from endomeasure.measure.kinds import PLANE_POINTS
-from endomeasure.measure.predict import ImageNoise
 from endomeasure.models import model_from_dict
-from endomeasure.pipeline import calibrated_model
 from endomeasure.pipeline.measure import measure_points
 from endomeasure.pipeline.predict import predict_stored_measurement
-from endomeasure.solvers.uncertainty import MeasurementFunction, propagate
 
 runner = CliRunner()
 
@@ -36,9 +38,6 @@ SAMPLES = Path(__file__).parents[2] / "sample_sessions"
 TEST_IMAGE = "test_000"
 """The first committed test image (the 1 mm board at 12 mm): the rule that picks it is
 "the first", not its result (``bench/accuracy_plane.py`` runs all 35)."""
-DISC_RADIUS_PX = 8
-"""The painted disc covers the corner's X-junction (squares of ~19 px here) and no other
-corner."""
 Z_BAND = 2.0
 """Errors against the predicted std: inside 2 sigma (issue 20: "within its +-")."""
 EXACT_TOL_MM = 1e-6
@@ -74,10 +73,7 @@ def board(tmp_path_factory):
     left = np.array(truth["corners"]["pixels"]["left"])
     right = np.array(truth["corners"]["pixels"]["right"])
     corner = cols * rows - 1
-    painted = image.copy()
-    for q in (left[corner], right[corner]):
-        centre = (int(round(q[0])), int(round(q[1])))
-        cv2.circle(painted, centre, DISC_RADIUS_PX, int(np.median(image)), -1)
+    painted = masked_corners(image, (left[corner], right[corner]))
     path = tmp_path_factory.mktemp("plane") / "board.h5"
     with edit_session(path, create=True) as w:
         w.set_metadata(image_size=tuple(model.config.image_size), split=model.config.split)
@@ -93,26 +89,6 @@ def board(tmp_path_factory):
         "neighbour": corner - 1,
         "plane": [0, cols - 1, (rows - 1) * cols],  # the other three outer corners
     }
-
-
-def _position_std(session, report) -> np.ndarray:
-    """The UT std (3,) of the first measured point's x, y, z, with the noise and the
-    calibration covariance the measurement's +- used."""
-    with open_session(session) as reader:
-        cm = calibrated_model(reader, report.model, session)
-    pts = report.plane + report.points[:1]
-    ql = np.array([p.left for p in pts])
-    qr = np.where(np.isnan([p.right for p in pts]), ql, [p.right for p in pts])
-    noise = ImageNoise.per_point(report.noise.pixel_std[: len(pts)], report.noise.source)
-    cov, blocks = noise.covariance(len(pts), cm.param_cov)
-    on_plane = np.arange(len(pts)) >= PLANE_POINTS
-    std = []
-    for k in range(3):
-        f = MeasurementFunction(cm.model, lambda p, k=k: p[..., PLANE_POINTS, k], len(pts),
-                                with_params=True, on_plane=on_plane)  # fmt: skip
-        pred = propagate(f, f.inputs(ql[None], qr[None]), cov, "ut", blocks=blocks)
-        std.append(float(pred.std[0]))
-    return np.array(std)
 
 
 def test_a_masked_corner_is_recovered_on_the_plane_within_its_std(board):
@@ -136,7 +112,7 @@ def test_a_masked_corner_is_recovered_on_the_plane_within_its_std(board):
                             store=False)  # fmt: skip
     assert report.error.value == pytest.approx(doc["value"], abs=1e-12)
     error = np.array(report.points[0].xyz) - b["xyz"][b["corner"]]
-    std = _position_std(b["path"], report)
+    std = placed_position_std(b["path"], report)
     assert np.all(np.abs(error) <= Z_BAND * std), (error, std)
     # stored, with the plane and what was placed on it
     assert b["path"].read_bytes() != before
