@@ -103,6 +103,15 @@ class Check:
         return f"{verdict}: {self.target}; this run {self.value:.4g}{self.target.unit}"
 
 
+def parse_seeds(text: str) -> list[int]:
+    """Design seeds from ``1-40``, ``1,5`` or ``1-3,7`` (ranges inclusive)."""
+    out: list[int] = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        out.extend(range(int(lo), int(hi or lo) + 1))
+    return out
+
+
 def script_parser(
     doc: str | None, *, seed: int | None = None, work: bool = False
 ) -> argparse.ArgumentParser:

@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "src"))
 
-from _common import ACCURACY, Report, Target, script_parser  # noqa: E402
+from _common import ACCURACY, Report, Target, parse_seeds, script_parser  # noqa: E402
 
 COVERAGE_TARGET = Target("pixels both halves see with a depth", ">=", 85.0, " %", "issue 20")
 ERROR_TARGET = Target("median |z error| / z", "<=", 0.2, " %", "issue 20")
@@ -174,7 +174,7 @@ def main() -> int:
     frames = default_frames(args.session, settings_for)
     design = []
     if args.designs is not None:
-        for seed in _seeds(args.design_seeds):
+        for seed in parse_seeds(args.design_seeds):
             design += design_frames(args.designs, seed, args.images, settings_for)
             print(f"design {seed}: {len(design)} frames", file=sys.stderr, flush=True)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -223,14 +223,6 @@ def main() -> int:
         "(max RSS).",
     ])  # fmt: skip
     return report.finish({"dense-surface": body})
-
-
-def _seeds(text: str) -> list[int]:
-    out = []
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        out += list(range(int(lo), int(hi or lo) + 1))
-    return out
 
 
 if __name__ == "__main__":

@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import ACCURACY, Report, Target, script_parser, stereo_calibrate_peer
+from _common import ACCURACY, Report, Target, parse_seeds, script_parser, stereo_calibrate_peer
 from _samples import detection_errors, truth_board_test
 from endomeasure import defaults
 
@@ -74,14 +74,6 @@ TARGETS = {
 }  # fmt: skip
 STD_RATIO_LIMIT = 0.25  # |actual / predicted std - 1| of a zone (issue 17)
 BAND_TARGET_PCT = (93.0, 98.0)  # errors inside the predicted 2-sigma band (issue 17)
-
-
-def _seeds(text: str) -> list[int]:
-    out: list[int] = []
-    for part in text.split(","):
-        a, _, b = part.partition("-")
-        out.extend(range(int(a), int(b or a) + 1))
-    return out
 
 
 def _finished(work: Path) -> set[int]:
@@ -472,7 +464,7 @@ def main(argv=None) -> int:
     )  # fmt: skip
     args = parser.parse_args(argv)
     report = Report("bench/accuracy_designs.py", args, ACCURACY)
-    seeds = _seeds("1-2" if args.quick else args.designs)
+    seeds = parse_seeds("1-2" if args.quick else args.designs)
     work = args.work or Path(tempfile.mkdtemp(prefix="designs_"))
     work.mkdir(parents=True, exist_ok=True)
     store = work / "designs.jsonl"

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import ACCURACY, ROOT, Report, Target, script_parser
+from _common import ACCURACY, ROOT, Report, Target, parse_seeds, script_parser
 
 DEFAULT_DESIGNS = "1-40"
 DEFAULT_IMAGES = 6
@@ -49,14 +49,6 @@ TARGETS = {
     "designs": Target("random designs with the split within +-2 px", ">=", 39, "", "issue 16"),
     "default": Target("default preset: |split error|", "<=", TOLERANCE_PX, " px", "issue 16"),
 }
-
-
-def _seeds(text: str) -> list[int]:
-    out: list[int] = []
-    for part in text.split(","):
-        a, _, b = part.partition("-")
-        out.extend(range(int(a), int(b or a) + 1))
-    return out
 
 
 def _finder_version() -> str:
@@ -261,7 +253,7 @@ def main(argv=None) -> int:
         split.SCENE_MISFIT = args.scene_misfit
         args.no_write = True
     report = Report("bench/accuracy_split.py", args, ACCURACY)
-    seeds = _seeds("1-2" if args.quick else args.designs)
+    seeds = parse_seeds("1-2" if args.quick else args.designs)
     count = 3 if args.quick else args.images
     work = args.work or ROOT / "out" / "split_designs"
     work.mkdir(parents=True, exist_ok=True)

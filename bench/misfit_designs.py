@@ -31,12 +31,11 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from _common import ACCURACY, Report  # noqa: E402
+from _common import ACCURACY, Report, parse_seeds  # noqa: E402
 from accuracy_designs import (  # noqa: E402
     MIN_ZONE_N,
     STD_RATIO_LIMIT,
     _finished,
-    _seeds,
     store_design,
     stored_designs,
     work_parser,
@@ -160,7 +159,7 @@ def main(argv=None) -> int:
     done = stored_designs(store, args.fresh)
     finished = _finished(args.work)
     rows = {}
-    for seed in _seeds(args.designs):
+    for seed in parse_seeds(args.designs):
         if seed in done:
             if "with" in done[seed]:
                 rows[seed] = done[seed]

@@ -47,13 +47,12 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from _common import ACCURACY, Report  # noqa: E402
+from _common import ACCURACY, Report, parse_seeds  # noqa: E402
 from _samples import detection_errors  # noqa: E402
 from accuracy_designs import (  # noqa: E402
     MIN_ZONE_N,
     STD_RATIO_LIMIT,
     _finished,
-    _seeds,
     store_design,
     stored_designs,
     work_parser,
@@ -327,7 +326,7 @@ def main(argv=None) -> int:
     done = stored_designs(store, args.fresh)
     rows = {}
     finished = _finished(args.work)
-    for seed in _seeds(args.designs):
+    for seed in parse_seeds(args.designs):
         stem = args.work / f"design_{seed:03d}"
         if seed in done:
             rows[seed] = done[seed]

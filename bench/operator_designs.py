@@ -33,11 +33,10 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from _common import ACCURACY, Report, Target  # noqa: E402
+from _common import ACCURACY, Report, Target, parse_seeds  # noqa: E402
 from _samples import endomeasure  # noqa: E402
 from accuracy_designs import (  # noqa: E402
     _finished,
-    _seeds,
     store_design,
     stored_designs,
     work_parser,
@@ -138,7 +137,7 @@ def main(argv=None) -> int:
     done = stored_designs(store, args.fresh)
     per_design, rows = {}, []
     finished = _finished(args.work)
-    for seed in _seeds(args.designs):
+    for seed in parse_seeds(args.designs):
         if seed not in done:
             if seed not in finished:  # accuracy_designs.py is not done with it yet
                 continue

@@ -75,14 +75,6 @@ def run_one(
     return row
 
 
-def _seeds(text: str) -> list[int]:
-    out = []
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        out.extend(range(int(lo), int(hi or lo) + 1))
-    return out
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="1-40")
@@ -110,7 +102,9 @@ def main() -> None:
     values = {} if args.n_glass is None else {"n_glass": args.n_glass}
     options = CalibrationOptions(free=free, fixed=fixed, values=values)
     rows = []
-    for seed in _seeds(args.seeds):
+    from _common import parse_seeds
+
+    for seed in parse_seeds(args.seeds):
         row = run_one(seed, args.noise, options, args.truth, args.from_truth)
         rows.append(row)
         ratio = row.get("ratio", float("nan"))

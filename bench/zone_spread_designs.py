@@ -37,9 +37,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from _common import ACCURACY, Report  # noqa: E402
+from _common import ACCURACY, Report, parse_seeds  # noqa: E402
 from _samples import truth_board_sets  # noqa: E402
-from accuracy_designs import MIN_ZONE_N, STD_RATIO_LIMIT, _seeds, work_parser  # noqa: E402
+from accuracy_designs import MIN_ZONE_N, STD_RATIO_LIMIT, work_parser  # noqa: E402
 from endomeasure import defaults  # noqa: E402
 from endomeasure.simulate.manifest import load_truth  # noqa: E402
 
@@ -135,7 +135,7 @@ def main(argv=None) -> int:
             row = json.loads(line)
             if row["draws"] == args.draws:
                 done[row["seed"]] = row
-    seeds = _seeds(args.designs)
+    seeds = parse_seeds(args.designs)
     with store.open("a") as out:
         for seed in seeds:
             if seed in done:
