@@ -42,8 +42,9 @@ def _frame(model, left_dir, right_dir):
 
 
 def rectify(model, z0: float):
-    """Remap tables (map_x, map_y per half), the viewpoints, rotation, focal and centre of
-    a virtual rectified pair exact at depth ``z0``."""
+    """A virtual rectified pair exact at depth ``z0``: per half the (h, w, 2) table of
+    original pixels of its rectified pixels, the focal length (px) and the baseline between
+    the halves' effective viewpoints (mm)."""
     from endomeasure.conventions import Half
     from endomeasure.measure.diagnostics import _ray_centre
 
@@ -65,7 +66,7 @@ def rectify(model, z0: float):
         t = (z0 - c[2]) / dirs[..., 2]
         q = model.project(c + t[..., None] * dirs, half).pixels.astype(np.float32)
         maps[half] = q
-    return maps, focal
+    return maps, focal, float(np.linalg.norm(centres[Half.RIGHT] - centres[Half.LEFT]))
 
 
 def sgbm_depth(model, image, z0: float, depth_range):
@@ -76,7 +77,7 @@ def sgbm_depth(model, image, z0: float, depth_range):
     from endomeasure.solvers.triangulate import triangulate
 
     start = time.perf_counter()
-    maps, focal = rectify(model, z0)
+    maps, focal, base = rectify(model, z0)
     grey = image.astype(np.float32)
     rect = {
         h: cv2.remap(
@@ -90,9 +91,6 @@ def sgbm_depth(model, image, z0: float, depth_range):
         for h in Half
     }
     # disparities of the searched depths at z0's rectification: d ~ f b / z, both ends
-    from endomeasure.measure.diagnostics import _ray_centre
-
-    base = float(np.linalg.norm(_ray_centre(model, Half.RIGHT) - _ray_centre(model, Half.LEFT)))
     lo = int(np.floor(focal * base / depth_range[1])) - 8
     hi = int(np.ceil(focal * base / depth_range[0])) + 8
     count = int(np.ceil((hi - lo) / 16.0)) * 16

@@ -143,6 +143,9 @@ __all__ = [
     "find_match",
     "find_matches",
     "estimate_noise",
+    "noise_level",
+    "NoiseLevel",
+    "noise_corrected_score",
     "match_precision",
     "MIN_SCORE",
     "MAX_SECOND_RATIO",
@@ -565,12 +568,20 @@ def estimate_noise(grey: np.ndarray) -> float:
     g = np.asarray(grey, dtype=np.float64)
     if g.shape[0] < 3 or g.shape[1] < 3:
         return 0.0
-    lap = (
+    return float(np.median(np.abs(_immerkaer(g))) / _IMMERKAER_MAD)
+
+
+_IMMERKAER_MAD = 0.6745 * 6.0
+"""Median absolute response of Immerkaer's operator to unit white noise."""
+
+
+def _immerkaer(g: np.ndarray) -> np.ndarray:
+    """Immerkaer's operator on the interior pixels of ``g`` (H - 2, W - 2)."""
+    return (
         g[:-2, :-2] - 2 * g[:-2, 1:-1] + g[:-2, 2:]
         - 2 * g[1:-1, :-2] + 4 * g[1:-1, 1:-1] - 2 * g[1:-1, 2:]
         + g[2:, :-2] - 2 * g[2:, 1:-1] + g[2:, 2:]
     )  # fmt: skip
-    return float(np.median(np.abs(lap)) / (0.6745 * 6.0))
 
 
 class NoiseLevel(NamedTuple):
@@ -610,11 +621,7 @@ def noise_level(grey: np.ndarray, smooth_px: int = 5) -> NoiseLevel:
     floor = 1.0 / 12.0
     if g.shape[0] < 3 or g.shape[1] < 3:
         return NoiseLevel(floor, 0.0, 0.0)
-    lap = np.abs(
-        g[:-2, :-2] - 2 * g[:-2, 1:-1] + g[:-2, 2:]
-        - 2 * g[1:-1, :-2] + 4 * g[1:-1, 1:-1] - 2 * g[1:-1, 2:]
-        + g[2:, :-2] - 2 * g[2:, 1:-1] + g[2:, 2:]
-    ).ravel()  # fmt: skip
+    lap = np.abs(_immerkaer(g)).ravel()
     level = cv2.blur(g, (smooth_px, smooth_px))[1:-1, 1:-1].ravel()
     black = float(np.percentile(level, 0.5))
     edges = np.unique(np.percentile(level, np.linspace(0, 100, _NOISE_BINS + 1)))
@@ -625,7 +632,7 @@ def noise_level(grey: np.ndarray, smooth_px: int = 5) -> NoiseLevel:
         if members.sum() < _NOISE_BIN_MIN:
             continue
         x.append(np.median(level[members]) - black)
-        y.append((np.median(lap[members]) / (0.6745 * 6.0)) ** 2)
+        y.append((np.median(lap[members]) / _IMMERKAER_MAD) ** 2)
         wt.append(members.sum())
     if len(x) < 2:
         return NoiseLevel(max(estimate_noise(g) ** 2, floor), 0.0, black)
@@ -718,12 +725,27 @@ def _signal_score(ncc, template_pos, template_raw, other_pos, other_raw, offsets
     untextured before this is used) and the result is capped at 1.
     """
     dof = offsets.shape[0] - 3
+    pairs = [
+        (float(np.sum(_ramp_free(raw[None], offsets) ** 2)) / dof,
+         noise**2 * _interpolated_noise_factor(pos))
+        for pos, raw in ((template_pos, template_raw), (other_pos, other_raw))
+    ]  # fmt: skip
+    return float(noise_corrected_score(ncc, *pairs))
+
+
+def noise_corrected_score(ncc, first, second) -> np.ndarray:
+    """``ncc / sqrt((1 - n1/v1)(1 - n2/v2))`` (vectorised): each of ``first``, ``second``
+    is a window's ``(v, n)``, its variance about its plane per degree of freedom and its
+    noise variance; each factor floored at 0.05 (0.05 where ``v`` is not positive), the
+    score capped at 1 (:func:`_signal_score`'s notes)."""
     factors = []
-    for pos, raw in ((template_pos, template_raw), (other_pos, other_raw)):
-        variance = float(np.sum(_ramp_free(raw[None], offsets) ** 2)) / dof
-        noise_var = noise**2 * _interpolated_noise_factor(pos)
-        factors.append(max(1.0 - noise_var / variance, 0.05) if variance > 0 else 0.05)
-    return float(min(1.0, ncc / np.sqrt(factors[0] * factors[1])))
+    for variance, noise_var in (first, second):
+        variance = np.asarray(variance, dtype=np.float64)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f = np.where(variance > 0, np.maximum(1.0 - noise_var / variance, 0.05), 0.05)
+        factors.append(f)
+    with np.errstate(invalid="ignore"):
+        return np.minimum(1.0, ncc / np.sqrt(factors[0] * factors[1]))
 
 
 def _search(model, grey, pixel, half: Half, settings: MatchSettings) -> _Search | None:

@@ -53,6 +53,7 @@ from endomeasure.measure.correspondence import (
     MIN_SCORE,
     NoiseLevel,
     match_precision,
+    noise_corrected_score,
     noise_level,
 )
 from endomeasure.measure.epipolar import DEPTH_RANGE_MM
@@ -308,7 +309,7 @@ def _ref_stats(grey: np.ndarray, window: int) -> _RefStats:
 def _zncc(ref: _RefStats, warped: np.ndarray, window: int):
     """ZNCC, about each window's best plane, of the reference windows with the warped
     other half (NaN where any sample of the window is missing), the fit gain
-    ``cov / var_other`` and ``var_other``.
+    ``cov / var_other``, ``var_other`` and the other window's mean.
 
     Both windows lose their mean and linear trend before they are compared: the
     illumination of an endoscope (vignetting, the light sources' fall-off, a specular
@@ -330,7 +331,7 @@ def _zncc(ref: _RefStats, warped: np.ndarray, window: int):
         ncc = cov / np.sqrt(ref.var * var)
         gain = cov / var
     ncc[~complete] = np.nan
-    return ncc, gain, var
+    return ncc, gain, var, m
 
 
 def _parabola(y_minus, y0, y_plus) -> np.ndarray:
@@ -583,14 +584,18 @@ def _match_at(model, rays, w, ref, right: _RightHalf, noise, settings: DenseSett
     rate = np.linalg.norm(dq_dw, axis=-1)  # px per unit inverse depth
     tangent = dq_dw / rate[..., None]
     values, gu, gv = right.sample(q_r.pixels, gradient=True)
-    ncc, gain, var_r = _zncc(ref, values, settings.window_px)
+    ncc, gain, var_r, mean_r = _zncc(ref, values, settings.window_px)
     # each window's noise at its own signal level (the sensor's noise grows with it)
     noise_l = noise[0].sigma(ref.mean)
-    noise_r = noise[1].sigma(_box(np.nan_to_num(values), settings.window_px))
+    noise_r = noise[1].sigma(mean_r)
     n = settings.window_px**2
     frac = np.nan_to_num(q_r.pixels - np.floor(q_r.pixels))
     interpolated = _box(noise_gain(frac[..., 0]) * noise_gain(frac[..., 1]), settings.window_px)
-    score = _signal_score(ncc, (ref.var, noise_l**2), (var_r, noise_r**2 * interpolated), n)
+    # the noise-corrected score as the operator search's (so that MIN_SCORE means the
+    # same); the windows' variances per degree of freedom (n - 3 about their plane)
+    dof = n / (n - 3)
+    score = noise_corrected_score(ncc, (ref.var * dof, noise_l**2),
+                                  (var_r * dof, noise_r**2 * interpolated))  # fmt: skip
     g = np.nan_to_num(gu * tangent[..., 0] + gv * tangent[..., 1])
     # the derivative's energy left once the windows lose their mean and trend (the part
     # of the signal the correlation uses); the derivative of the interpolated noisy image
@@ -659,20 +664,6 @@ def _calibration_sigma(model, param_cov, misfit_cov, left, right) -> np.ndarray:
     except (QhullError, ValueError):
         return near
     return np.where(np.isfinite(out), out, near)
-
-
-def _signal_score(ncc, ref, other, n: int) -> np.ndarray:
-    """The ZNCC corrected for image noise, as the operator search's ``signal_score``: the
-    expected ZNCC of identical signals under independent noise is
-    ``sqrt((1 - n1/v1)(1 - n2/v2))`` (``v``: a window's variance about its plane over its
-    ``n - 3`` degrees of freedom, ``n``: its noise variance); each factor is floored at
-    0.05 and the score capped at 1, so that :data:`MIN_SCORE` means the same here."""
-    factors = []
-    for var, noise_var in (ref, other):
-        with np.errstate(invalid="ignore", divide="ignore"):
-            factors.append(np.maximum(1.0 - noise_var / (var * n / (n - 3)), 0.05))
-    with np.errstate(invalid="ignore"):
-        return np.minimum(1.0, ncc / np.sqrt(factors[0] * factors[1]))
 
 
 def _check_consistency(model, grey, status, q_r, w, levels, settings: DenseSettings) -> None:
