@@ -12,6 +12,9 @@ beyond the inner corners on each side); the square whose corner nearest the orig
 ``(i s, j s)`` is black when ``i + j`` is even, so the top-left outer square is black.
 Around the checker area a white margin of ``margin_squares`` squares, then the card ends.
 
+The metal cylinder may carry pits (:data:`PIT_SHAPE`): smooth depressions of known depth
+along the inward normal, intersected exactly (see :class:`MetalCylinder`).
+
 A ChArUco board is the same card with OpenCV's pattern printed on it: ``squares_x x
 squares_y`` squares (so ``squares_x - 1`` by ``squares_y - 1`` inner corners, numbered as
 OpenCV numbers ChArUco corners, which is the rule above), an ArUco marker in every white
@@ -27,7 +30,14 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["Hit", "Chessboard", "CharucoBoard", "MetalCylinder", "target_from_preset"]
+__all__ = [
+    "Hit",
+    "Chessboard",
+    "CharucoBoard",
+    "MetalCylinder",
+    "PIT_SHAPE",
+    "target_from_preset",
+]
 
 
 class Hit(NamedTuple):
@@ -332,6 +342,53 @@ _OCTAVES = ((0.5, 0.05, 0.35), (0.12, 0.12, 0.25), (0.4, 0.4, 0.25), (1.5, 1.5, 
 _GRID = 256
 
 
+PIT_SHAPE = (
+    "depression along the inward normal h = depth (1 - (r / radius)^2)^2 for r < radius, 0 "
+    "beyond; r the distance from the pit centre in surface coordinates (s, y); depths add "
+    "where pits overlap"
+)
+"""The pits' shape: a bowl whose deepest point, at its centre, lies exactly ``depth``
+below the cylinder, with zero slope there and at its rim (C1 into the undamaged surface)."""
+PIT_COLUMNS = ("s_mm", "y_mm", "radius_mm", "depth_mm")
+"""The columns of :attr:`MetalCylinder.pits` and of the preset's ``pits_mm`` rows."""
+_BOWL_SLOPE = 8.0 / (3.0 * np.sqrt(3.0))
+"""Largest ``|dh/dr|`` of the bowl in units of depth / radius (at ``r = radius / sqrt 3``)."""
+_PIT_TOL_MM = 1e-10
+"""A pit hit is converged when ``|F| <= this``; ``|grad F| >= 1``, so the point is then
+within this distance of the surface."""
+_PIT_NEWTON_MM = 1e-4
+"""Below this ``F`` the search takes Newton steps instead of safe (Lipschitz) steps: the
+Newton step is then far shorter than the bowl's radius of curvature, so it cannot jump a
+fold of the surface."""
+_PIT_MAX_STEPS = 500
+"""Iterations of the pit intersection before a ray counts as not converged (a ray nearly
+tangent to a pit wall; reported as a miss, never as a wrong point)."""
+
+
+def _pit_field(pits: np.ndarray, s: np.ndarray, y: np.ndarray):
+    """Depression ``h`` (mm, >= 0) of the pits and its derivatives ``dh/ds``, ``dh/dy``.
+
+    Parameters
+    ----------
+    pits : ndarray, shape (P, 4), mm
+        Rows ``(s, y, radius, depth)``.
+    s, y : ndarray, shape (N,), mm
+        Surface coordinates.
+    """
+    h, h_s, h_y = np.zeros(s.shape), np.zeros(s.shape), np.zeros(s.shape)
+    for s0, y0, radius, depth in pits:
+        near = np.flatnonzero((np.abs(s - s0) < radius) & (np.abs(y - y0) < radius))
+        if near.size == 0:
+            continue
+        ds, dy = s[near] - s0, y[near] - y0
+        w = np.clip(1.0 - (ds * ds + dy * dy) / (radius * radius), 0.0, None)
+        h[near] += depth * w * w
+        k = -4.0 * depth * w / (radius * radius)
+        h_s[near] += k * ds
+        h_y[near] += k * dy
+    return h, h_s, h_y
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class MetalCylinder:
     """A convex metal cylinder (e.g. a blade root or a tube) with small dark marks.
@@ -354,6 +411,25 @@ class MetalCylinder:
         Arc length and height of the mark centres.
     mark_radius_mm, mark_albedo : float
     R, t : pose ``T_camera_surface``.
+    pits : ndarray, shape (P, 4), mm
+        Pits (:data:`PIT_SHAPE`), rows ``(s, y, radius, depth)``: centre, radius and the
+        depth of the deepest point below the cylinder; default none. The texture keeps
+        following ``(s, y)`` into a pit.
+
+    Notes
+    -----
+    With pits the surface is, in cylindrical coordinates about the axis, the radius
+    ``rho = radius_mm - h(s, y)`` with ``s = radius_mm * phi``; ``F(p) = rho(p) -
+    radius_mm + h(s(p), y(p))`` is zero on it, positive outside (in the air) and
+    ``|grad F| >= 1``. A ray first meets the cylinder at ``t_c``; where ``h`` is zero
+    there, that is its hit, exactly the plain cylinder's. Otherwise it entered a pit's
+    mouth and the hit is the first root of ``F(o + t d)`` beyond ``t_c``: safe steps
+    ``t += F / L`` (sphere tracing; ``L`` bounds ``|grad F|`` wherever ``F >= 0``, so a
+    step never passes the first root), Newton steps once ``F`` is below
+    :data:`_PIT_NEWTON_MM`, kept inside the bracket ``F > 0 > F`` once one is known (else
+    bisection), until ``|F| <= ``:data:`_PIT_TOL_MM`, in float64 whatever the rays'
+    precision. A ray that leaves through the pit's mouth again misses the part. The normal
+    is ``grad F / |grad F|`` at the hit (the pit wall's, for the shading).
     """
 
     radius_mm: float
@@ -368,12 +444,25 @@ class MetalCylinder:
     R: np.ndarray
     t: np.ndarray
     name: str = "metal"
+    pits: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 4)))
 
     kind = "cylinder"
+
+    def __post_init__(self):
+        pits = np.asarray(self.pits, dtype=np.float64).reshape(-1, 4)
+        if not np.all(np.isfinite(pits)) or np.any(pits[:, 2:] <= 0):
+            raise ValueError(f"target {self.name!r}: pits need a finite, positive radius and depth")
+        if pits[:, 3].sum() >= self.radius_mm:
+            raise ValueError(f"target {self.name!r}: the pits' depths reach the cylinder's axis")
+        object.__setattr__(self, "pits", pits)
 
     def with_pose(self, R: np.ndarray, t: np.ndarray) -> MetalCylinder:
         R, t = _pose(R, t)
         return dataclasses.replace(self, R=R, t=t)
+
+    def with_pits(self, pits: np.ndarray) -> MetalCylinder:
+        """The same part with these pits (P, 4) ``(s, y, radius, depth)``, mm, instead."""
+        return dataclasses.replace(self, pits=pits)
 
     @cached_property
     def _lattices(self) -> list[np.ndarray]:
@@ -397,6 +486,17 @@ class MetalCylinder:
     def marks_camera(self) -> np.ndarray:
         """Mark centres in the camera frame, shape (M, 3), mm."""
         return self.marks_surface @ self.R.T + self.t
+
+    @property
+    def pit_bottoms_camera(self) -> np.ndarray:
+        """Each pit's deepest point (its centre, ``depth`` below the cylinder along the
+        inward normal) in the camera frame, shape (P, 3), mm; of a lone pit (overlapping
+        pits add their depths)."""
+        s, y, _, depth = self.pits.T
+        phi = s / self.radius_mm
+        rho = self.radius_mm - depth
+        bottom = np.stack([rho * np.sin(phi), y, self.radius_mm - rho * np.cos(phi)], axis=-1)
+        return bottom @ self.R.T + self.t
 
     def texture(self, s: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Diffuse albedo at surface coordinates (arc length, height), mm."""
@@ -433,14 +533,91 @@ class MetalCylinder:
             t = (-b - np.sqrt(disc)) / (2.0 * a)
         hit = (disc > 0) & (t > 0)
         t[~hit] = np.nan
+        pitted = None
+        if len(self.pits):
+            with np.errstate(invalid="ignore", divide="ignore"):
+                t_back = (-b + np.sqrt(disc)) / (2.0 * a)
+            pitted, grad = self._pit_hits(lo, ld, t, hit, t_back)
         sx, sy, sz = (lo[k] + t * ld[k] for k in range(3))
         s_arc = r0 * np.arctan2(sx, r0 - sz)
         albedo = np.zeros_like(t)
         albedo[hit] = self.texture(s_arc[hit], sy[hit])
         # outward normal (x, 0, z - r) / r in the surface frame, to the camera frame
         ux, uz = sx / r0, (sz - r0) / r0
-        normal = tuple(ux * R[k, 0] + uz * R[k, 2] for k in range(3))
+        if pitted is not None and pitted.size:
+            ux, uz = np.array(ux, copy=True), np.array(uz, copy=True)
+            uy = np.zeros_like(ux)
+            norm = np.sqrt(grad[0] ** 2 + grad[1] ** 2 + grad[2] ** 2)
+            ux[pitted], uy[pitted], uz[pitted] = (g / norm for g in grad)
+            normal = tuple(ux * R[k, 0] + uy * R[k, 1] + uz * R[k, 2] for k in range(3))
+        else:
+            normal = tuple(ux * R[k, 0] + uz * R[k, 2] for k in range(3))
         return Hit(t, hit, normal, albedo, self.specular)
+
+    def _surface_function(self, o: np.ndarray, d: np.ndarray, t: np.ndarray):
+        """``F``, ``dF/dt`` and ``grad F`` (3 arrays) at ``o + t d`` (surface frame, (3, n))."""
+        r0 = self.radius_mm
+        x, y, zc = o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2] - r0
+        rho = np.hypot(x, zc)
+        h, h_s, h_y = _pit_field(self.pits, r0 * np.arctan2(x, -zc), y)
+        # grad F = e_rho + h_s (r0 / rho) e_phi + h_y e_y; e_rho = (x, 0, zc) / rho and
+        # e_phi = (-zc, 0, x) / rho (the direction of growing s)
+        k = h_s * r0 / rho
+        grad = ((x - k * zc) / rho, h_y, (zc + k * x) / rho)
+        slope = grad[0] * d[0] + grad[1] * d[1] + grad[2] * d[2]
+        return rho - r0 + h, slope, grad
+
+    def _pit_hits(self, lo, ld, t: np.ndarray, hit: np.ndarray, t_back: np.ndarray):
+        """Move ``t`` (in place) of the rays that enter a pit's mouth to the pit's surface.
+
+        Returns the indices of those rays and ``grad F`` (3 arrays) at their hits; a ray
+        that leaves through the mouth again, or does not converge, becomes a miss.
+        """
+        r0 = self.radius_mm
+        idx = np.flatnonzero(hit)
+        o = np.stack([np.asarray(lo[k], dtype=np.float64)[idx] for k in range(3)])
+        d = np.stack([np.asarray(ld[k], dtype=np.float64)[idx] for k in range(3)])
+        t0 = t[idx].astype(np.float64)
+        x, y, z = o + t0 * d
+        inside = _pit_field(self.pits, r0 * np.arctan2(x, r0 - z), y)[0] > 0
+        idx, o, d, tt = idx[inside], o[:, inside], d[:, inside], t0[inside]
+        t_end = np.asarray(t_back, dtype=np.float64)[idx]
+        # |grad F|^2 = 1 + (h_s r0 / rho)^2 + h_y^2 and rho >= r0 - sum(depth) where F >= 0
+        depth_sum = float(self.pits[:, 3].sum())
+        max_slope = float(np.sum(_BOWL_SLOPE * self.pits[:, 3] / self.pits[:, 2]))
+        lipschitz = float(np.hypot(1.0, max_slope * r0 / (r0 - depth_sum)))
+        F, slope, grad = self._surface_function(o, d, tt)
+        t_lo, F_lo = tt.copy(), F.copy()  # F > 0 here: at or before the first root
+        t_hi = np.full(tt.shape, np.inf)  # F < 0 here, once known
+        done = np.abs(F) <= _PIT_TOL_MM
+        left = np.zeros(tt.shape, dtype=bool)  # left through the mouth: a miss
+        for _ in range(_PIT_MAX_STEPS):
+            act = np.flatnonzero(~done)
+            if act.size == 0:
+                break
+            newton = (np.abs(F[act]) <= _PIT_NEWTON_MM) & (slope[act] < 0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                step = np.where(newton, tt[act] - F[act] / slope[act],
+                                t_lo[act] + F_lo[act] / lipschitz)  # fmt: skip
+            lo_a, hi_a = t_lo[act], t_hi[act]
+            outside = np.isfinite(hi_a) & ~((step > lo_a) & (step < hi_a))
+            step = np.where(outside, 0.5 * (lo_a + hi_a), step)
+            f, s, g = self._surface_function(o[:, act], d[:, act], step)
+            tt[act], F[act], slope[act] = step, f, s
+            for k in range(3):
+                grad[k][act] = g[k]
+            above = f > 0
+            t_lo[act] = np.where(above, step, lo_a)
+            F_lo[act] = np.where(above, f, F_lo[act])
+            t_hi[act] = np.where(above, hi_a, step)
+            gone = above & (step > t_end[act])
+            left[act] = gone
+            done[act] = (np.abs(f) <= _PIT_TOL_MM) | gone
+        missed = ~done | left
+        t[idx] = np.where(missed, np.nan, tt)
+        hit[idx[missed]] = False
+        keep = ~missed
+        return idx[keep], tuple(g[keep] for g in grad)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -457,6 +634,15 @@ class MetalCylinder:
             "shininess": self.shininess,
             "texture_seed": self.texture_seed,
             "mark_radius_mm": self.mark_radius_mm,
+            **(
+                {
+                    "pits_mm": self.pits.tolist(),
+                    "pit_columns": list(PIT_COLUMNS),
+                    "pit_shape": PIT_SHAPE,
+                }
+                if len(self.pits)
+                else {}
+            ),  # fmt: skip
         }
 
 
@@ -520,5 +706,6 @@ def target_from_preset(name: str, spec: dict[str, Any]):
             float(spec["specular"]), float(spec["shininess"]), int(spec["texture_seed"]),
             np.asarray(spec["marks_mm"], dtype=np.float64).reshape(-1, 2),
             float(spec["mark_radius_mm"]), float(spec["mark_albedo"]), eye, zero, name,
+            np.asarray(spec.get("pits_mm", []), dtype=np.float64).reshape(-1, 4),
         )  # fmt: skip
     raise ValueError(f"target {name!r} has unknown kind {kind!r}")

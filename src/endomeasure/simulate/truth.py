@@ -7,7 +7,7 @@ true 3D position in the camera frame and true pixel in each half, computed by ex
 aiming through the ground-truth optics of :mod:`.truth_optics` (``null`` where the corner
 does not project into that half), plus the true values of the board-test measurements
 (SPEC section 7). For the metal scene: the marks' 3D positions, pixels, and the
-distances between them.
+distances between them; with pits, each pit's deepest point and its pixels.
 """
 
 from __future__ import annotations
@@ -182,6 +182,19 @@ def _scene_truth(preset: Preset, surface: MetalCylinder) -> dict[str, Any]:
             "radius_mm": surface.mark_radius_mm,
         },
         "distances": pairs,
+        **({"pits": _pit_truth(preset, surface)} if len(surface.pits) else {}),
+    }
+
+
+def _pit_truth(preset: Preset, surface: MetalCylinder) -> dict[str, Any]:
+    bottoms = surface.pit_bottoms_camera
+    return {
+        "ids": list(range(len(bottoms))),
+        "surface_sy_mm": surface.pits[:, :2].tolist(),
+        "radius_mm": surface.pits[:, 2].tolist(),
+        "depth_mm": surface.pits[:, 3].tolist(),
+        "bottom_points_mm": bottoms.tolist(),
+        "bottom_pixels": true_pixels(preset, bottoms),
     }
 
 
