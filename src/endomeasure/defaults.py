@@ -20,6 +20,7 @@ __all__ = [
     "MIN_ZONE_MM",
     "PATCH_PX",
     "DENSE_WINDOW_PX",
+    "DENSE_WINDOW_RANGE_PX",
     "TRUST_BANDS_PERCENT",
     "WARN_PERCENT",
     "ZONE_MM",
@@ -42,15 +43,18 @@ PATCH_PX = 15
 """Side of the correlation patch of the automatic search in the other half (px, odd)."""
 
 DENSE_WINDOW_PX = 31
-"""Side of the dense search's correlation window (px, odd). A surface pixel has no
-mark to lock on: its match's precision is set by the texture's derivative energy
-against the noise, summed over the window (sigma ~ 1 / side), and on weakly textured
-metal a patch-sized window leaves most pixels above the refusal precision. The window
-follows the surface (its warp is the coarse depth map), so the cost is resolution: the
-depth is an average over the window, which the user sets with ``--window``. The value was
-chosen among 9-31 px on the default preset's scene images; the random designs' figures
-(``bench/accuracy_dense.py --designs``) show that it is not enough for every probe, and a
-window chosen from each image's own texture and noise is open."""
+"""Side of the dense search's plane-sweep window (px, odd; ``--window``): the coarse depth
+that starts the refinement. Fronto-parallel planes only fit a curved or tilted surface over
+a small window; weak texture is the refinement's job (:data:`DENSE_WINDOW_RANGE_PX`)."""
+
+DENSE_WINDOW_RANGE_PX = (15, 63)
+"""Smallest and largest side of the dense refinement's windows (px, odd). A surface pixel
+has no mark to lock on: its precision is the texture's derivative energy against the
+noise, summed over the window (sigma ~ 1 / side), while the depth is an average over the
+window. Each pixel therefore gets the largest window that agrees with all smaller ones
+(the intersection of confidence intervals): large where the surface is smooth on that
+scale, small at a pit or an edge. 15 px still holds enough samples for a correlation
+about a plane; 127 px is about a third of a small sensor's half."""
 
 ZONE_MM = 5.0
 """Width of the distance zones of the board test (mm): the paper's Fig. 4 uses zones of

@@ -47,7 +47,7 @@ import numpy as np
 from endomeasure import defaults
 from endomeasure.conventions import Half
 from endomeasure.errors import BadInputError
-from endomeasure.interpolation import noise_gain, spline_coefficients, spline_sample
+from endomeasure.interpolation import noise_gain, spline_coefficients
 from endomeasure.measure.correspondence import (
     MAX_PRECISION_PX,
     MIN_SCORE,
@@ -72,8 +72,6 @@ __all__ = [
 
 _PROBE_LEVELS = 33
 """Levels of the first pass that measures how far the right pixel moves over the range."""
-_TANGENT_STEP = 1e-3
-"""Relative step of inverse depth for the curve tangent ``dq/dw`` (central difference)."""
 
 
 class DenseStatus(enum.IntEnum):
@@ -98,7 +96,11 @@ class DenseSettings:
     Attributes
     ----------
     window_px : int
-        Side of the square ZNCC window (odd), px.
+        Side of the plane sweep's square ZNCC window (odd), px.
+    window_range_px : (int, int)
+        Smallest and largest side of the refinement's windows (odd), px: sizes double
+        (``2 s + 1``) from the smallest; each pixel keeps the largest size its smaller
+        ones agree with (:func:`_choose_window`).
     depth_range_mm : (float, float)
         Nearest and farthest depth searched, mm.
     coarse_step_px : float
@@ -106,7 +108,10 @@ class DenseSettings:
     fine_steps : int
         Sub-levels per coarse level in the refinement.
     fine_reach : float
-        The refinement searches this many coarse levels either side of the coarse depth.
+        The refinement searches this many coarse levels either side of its start.
+    passes : int
+        Refinement passes: each starts from the previous one's depths (the first from
+        the sweep's), smoothed on each window's scale (:func:`_smooth_base`).
     grid_px : int
         Spacing of the left pixels where the sweep's plane maps are computed exactly.
     consistency_levels : float
@@ -116,10 +121,12 @@ class DenseSettings:
     """
 
     window_px: int = defaults.DENSE_WINDOW_PX
+    window_range_px: tuple[int, int] = defaults.DENSE_WINDOW_RANGE_PX
     depth_range_mm: tuple[float, float] = DEPTH_RANGE_MM
     coarse_step_px: float = 1.0
     fine_steps: int = 4
     fine_reach: float = 1.5
+    passes: int = 3
     grid_px: int = 4
     consistency_levels: float = 2.0
     smooth_px: int = 5
@@ -129,9 +136,21 @@ class DenseSettings:
             raise BadInputError(
                 f"the window must be an odd number >= 3 of px, not {self.window_px}"
             )
+        small, large = self.window_range_px
+        if small < 3 or small % 2 == 0 or large < small:
+            raise BadInputError(
+                f"window sizes {small}-{large} px: need an odd smallest >= 3 and largest >= it"
+            )
         near, far = self.depth_range_mm
         if not 0 < near < far:
             raise BadInputError(f"depth range {near}-{far} mm is not 0 < near < far")
+
+    def windows(self) -> list[int]:
+        """The refinement's window sides, px, ascending."""
+        sizes = [self.window_range_px[0]]
+        while 2 * sizes[-1] + 1 <= self.window_range_px[1]:
+            sizes.append(2 * sizes[-1] + 1)
+        return sizes
 
 
 class DenseSurface(NamedTuple):
@@ -156,6 +175,7 @@ class DenseSurface(NamedTuple):
     status: np.ndarray
     noise: tuple[NoiseLevel, NoiseLevel]  # per half, grey levels
     levels: int  # coarse sweep levels
+    window: np.ndarray  # (h, w) uint16: side of the window each depth comes from, px (0: none)
 
 
 def check_region(model: CameraModel, region: tuple[int, int, int, int] | None, window: int):
@@ -210,28 +230,72 @@ class _Frame(NamedTuple):
     ref: Half
 
 
-def _plane_maps(model, frame: _Frame, w: np.ndarray, grid_px: int):
-    """Other-half pixel of every reference pixel on each constant-z plane, one (h, w, 2)
-    float32 map per plane in turn (a generator: K full-size maps at once would take
-    gigabytes on a large sensor), interpolated bilinearly from exact projections on a
-    grid (NaN: not seen)."""
-    import cv2
+class _CurveTable(NamedTuple):
+    """Exact other-half pixels of a grid of reference pixels on the sweep's planes.
 
-    gu = _grid(frame.u0, frame.u1, grid_px)
-    gv = _grid(frame.v0, frame.v1, grid_px)
-    nodes = np.stack(np.meshgrid(gu, gv), axis=-1)  # (gh, gw, 2)
+    ``field`` (K, gh, gw, 2): the projection of grid node ``(gy, gx)``'s ray point at
+    inverse depth ``w0 + k dw``, continued beyond the other half's edges
+    (:func:`_continued`); ``seen`` (K, gh, gw): the nodes the other half sees; ``mx``
+    (w,), ``my`` (h,): each frame column's and row's fractional grid coordinate. Any
+    pixel's curve point at any inverse depth inside the range follows by interpolation
+    (:func:`~endomeasure.measure._dense_kernels.curve_samples`): the map is smooth in
+    both, and ray aiming every pixel at every candidate depth would cost most of a frame.
+    """
+
+    field: np.ndarray
+    seen: np.ndarray
+    mx: np.ndarray
+    my: np.ndarray
+    w0: float
+    dw: float
+
+
+def _curve_table(model, frame: _Frame, levels: np.ndarray, grid_px: int) -> _CurveTable:
+    """The table of :class:`_CurveTable` for a reference frame and uniform levels."""
+    # uniform nodes from one step before the frame to two after it: the cubic stencil
+    gu = frame.u0 + grid_px * np.arange(-1, (frame.u1 - 1 - frame.u0) // grid_px + 3)
+    gv = frame.v0 + grid_px * np.arange(-1, (frame.v1 - 1 - frame.v0) // grid_px + 3)
+    nodes = np.stack(np.meshgrid(gu, gv), axis=-1).astype(np.float64)  # (gh, gw, 2)
     rays = model.rays(nodes, frame.ref)
     other = Half.RIGHT if frame.ref is Half.LEFT else Half.LEFT
-    proj = model.project(_ray_points(rays, w[:, None, None]), other)
-    field = proj.pixels.astype(np.float32)  # (K, gh, gw, 2), NaN where not OK
-    uu = np.arange(frame.u0, frame.u1, dtype=np.float64)
-    vv = np.arange(frame.v0, frame.v1, dtype=np.float64)
-    # fractional grid coordinates of every pixel (nodes are uniform but for the last one)
-    mx = np.interp(uu, gu, np.arange(gu.size)).astype(np.float32)
-    my = np.interp(vv, gv, np.arange(gv.size)).astype(np.float32)
-    map_x, map_y = np.meshgrid(mx, my)
-    for k in range(w.size):
-        yield cv2.remap(field[k], map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    field = model.project(_ray_points(rays, levels[:, None, None]), other).pixels
+    seen = np.isfinite(field).all(axis=-1)
+    mx = (np.arange(frame.u0, frame.u1) - gu[0]) / grid_px
+    my = (np.arange(frame.v0, frame.v1) - gv[0]) / grid_px
+    return _CurveTable(np.ascontiguousarray(_continued(field)), seen, mx, my,
+                       float(levels[0]), float(levels[1] - levels[0]))  # fmt: skip
+
+
+def _continued(field: np.ndarray, depth: int = 2) -> np.ndarray:
+    """``field`` (K, gh, gw, 2) with up to ``depth`` missing nodes next to the seen ones
+    filled by quadratic extrapolation along rows, then columns: the map is smooth, and the
+    interpolation's cubic stencil needs whole neighbourhoods at the other half's edges."""
+    out = field.copy()
+    for axis in (2, 1):
+        for _ in range(depth):
+            for step in (1, -1):
+                f1, f2, f3 = (np.roll(out, -step * j, axis=axis) for j in (1, 2, 3))
+                guess = 3.0 * f1 - 3.0 * f2 + f3
+                # np.roll wraps around: the last nodes must not borrow from the first
+                index = np.arange(out.shape[axis])
+                inside = (index + 3 * step < out.shape[axis]) & (index + 3 * step >= 0)
+                shape = [1] * out.ndim
+                shape[axis] = -1
+                fill = np.isnan(out) & np.isfinite(guess) & inside.reshape(shape)
+                out[fill] = guess[fill]
+    return out
+
+
+def _plane_maps(table: _CurveTable):
+    """Other-half pixel of every reference pixel on each constant-z plane, one (h, w, 2)
+    float32 map per plane in turn (a generator: K full-size maps at once would take
+    gigabytes on a large sensor), bilinear between the table's nodes (NaN: not seen)."""
+    import cv2
+
+    map_x, map_y = np.meshgrid(table.mx.astype(np.float32), table.my.astype(np.float32))
+    for plane, seen in zip(table.field.astype(np.float32), table.seen, strict=True):
+        plane = np.where(seen[..., None], plane, np.nan)
+        yield cv2.remap(plane, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def _levels(model, frame: _Frame, settings: DenseSettings) -> np.ndarray:
@@ -347,7 +411,8 @@ class _Coarse(NamedTuple):
     status: np.ndarray  # (h, w) uint8
 
 
-def _coarse(model, grey, frame: _Frame, levels: np.ndarray, settings: DenseSettings) -> _Coarse:
+def _coarse(model, grey, table: _CurveTable, frame: _Frame, levels: np.ndarray,
+            settings: DenseSettings) -> _Coarse:  # fmt: skip
     """Plane sweep of one reference window: best level per pixel, sub-level parabola."""
     import cv2
 
@@ -368,7 +433,7 @@ def _coarse(model, grey, frame: _Frame, levels: np.ndarray, settings: DenseSetti
     previous = np.full(shape, np.nan)
     seen = np.zeros(shape, dtype=bool)
     last = levels.size - 1
-    for k, plane in enumerate(_plane_maps(model, frame, levels, settings.grid_px)):
+    for k, plane in enumerate(_plane_maps(table)):
         mx = np.nan_to_num(plane[..., 0], nan=-1e6)
         my = np.nan_to_num(plane[..., 1], nan=-1e6)
         warped = cv2.remap(other, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
@@ -397,16 +462,135 @@ def _coarse(model, grey, frame: _Frame, levels: np.ndarray, settings: DenseSetti
     return _Coarse(w, status)
 
 
-def _median_filled(w: np.ndarray, size: int) -> np.ndarray:
-    """Median of ``w`` over valid neighbours (NaN ignored), invalid pixels kept NaN."""
-    from scipy.ndimage import median_filter
+def _smooth_base(w: np.ndarray, smooth_px: int, side: int) -> np.ndarray:
+    """A smooth start surface from inverse depths ``w`` (NaN: none), (h, w).
+
+    A median of ``smooth_px`` over the known depths removes outliers; then, at every
+    pixel, a quadratic surface is fitted by least squares to the known depths of the
+    ``side`` x ``side`` window around it (a normalised-convolution Savitzky-Golay fit:
+    holes carry no weight, nothing is filled in) and evaluated there. A window warped by
+    this surface and shifted by its offset is right at its centre when the surface has
+    the right shape over the window, whatever its level, so the fit keeps the slope and
+    curvature and leaves no structure smaller than its side. NaN where fewer than a
+    tenth of the window's depths are known.
+    """
+    import cv2
+    from scipy.ndimage import distance_transform_edt, median_filter
 
     valid = np.isfinite(w)
-    if not valid.any():
-        return w
-    # invalid pixels take the median of the valid ones, so they neither win nor lose
-    filled = np.where(valid, w, np.nanmedian(w))
-    return np.where(valid, median_filter(filled, size=size, mode="nearest"), np.nan)
+    out = np.full(w.shape, np.nan)
+    if valid.sum() < 6:
+        return out
+    med = median_filter(np.where(valid, w, np.nanmedian(w)), size=smooth_px, mode="nearest")
+    mask = valid.astype(np.float64)
+    data = np.where(valid, med, 0.0)
+    r = side // 2
+    offsets = np.arange(-r, r + 1, dtype=np.float64) / max(r, 1)
+    powers = [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)]  # du^a dv^b
+
+    def window_sum(x, a, b):  # sum over the window of x * du^a * dv^b (du, dv: offsets)
+        # correlation: the kernel's offset is the neighbour's, relative to the centre
+        return cv2.sepFilter2D(x, cv2.CV_64F, offsets**a, offsets**b,
+                               borderType=cv2.BORDER_CONSTANT)  # fmt: skip
+
+    moments = {}
+    for a in range(5):
+        for b in range(5 - a):
+            moments[a, b] = window_sum(mask, a, b)
+    normal = np.stack([np.stack([moments[a1 + a2, b1 + b2] for a2, b2 in powers], -1)
+                       for a1, b1 in powers], -2)  # fmt: skip
+    rhs = np.stack([window_sum(data, a, b) for a, b in powers], -1)
+    enough = moments[0, 0] >= 0.1 * side * side
+    if not enough.any():
+        return out
+    coef = np.linalg.solve(normal[enough] + 1e-9 * np.eye(6), rhs[enough][..., None])
+    out[enough] = coef[:, 0, 0]
+    # beyond the known depths' reach: the nearest fitted value (a start, not a depth)
+    _, (iy, ix) = distance_transform_edt(~enough, return_indices=True)
+    return out[iy, ix]
+
+
+class _Candidate(NamedTuple):
+    """One window size's match per pixel: inverse depth, its sigma, the right pixel,
+    the noise-corrected score, the precision along the curve (px) and the status."""
+
+    w: np.ndarray
+    sigma_w: np.ndarray
+    right: np.ndarray
+    score: np.ndarray
+    precision: np.ndarray
+    status: np.ndarray
+
+
+def _refine(table: _CurveTable, bases: dict, refs: dict, right: _RightHalf, noise,
+            settings: DenseSettings) -> dict:  # fmt: skip
+    """Each window size's match around its start surface ``bases[size]``.
+
+    The other half is sampled along every pixel's curve at sub-levels within
+    ``fine_reach`` coarse levels of the start; the ZNCC peak and a parabola give the
+    offset, which is added to the start at the pixel (the window was warped by the
+    start, so its offset corrects the start where the window is centred). The match at
+    that depth is then evaluated (:func:`_match_at`) for its score, precision and sigma.
+    """
+    n_fine = int(np.ceil(settings.fine_reach * settings.fine_steps))
+    offsets = np.arange(-n_fine, n_fine + 1) / settings.fine_steps * table.dw
+    out = {}
+    for size, ref in refs.items():
+        base = bases[size]
+        fine = np.stack([_zncc(ref, right.along(table, base + dj).values, size)[0]
+                         for dj in offsets])  # fmt: skip
+        best = np.argmax(np.nan_to_num(fine, nan=-2.0), axis=0)
+        rows, cols = np.indices(best.shape)
+        y0 = fine[best, rows, cols]
+        y_minus = fine[np.maximum(best - 1, 0), rows, cols]
+        y_plus = fine[np.minimum(best + 1, offsets.size - 1), rows, cols]
+        w = base + np.interp(best + _parabola(y_minus, y0, y_plus), np.arange(offsets.size),
+                             offsets)  # fmt: skip
+        end = (best == 0) | (best == offsets.size - 1)
+        end |= ~(np.isfinite(y_minus) & np.isfinite(y_plus))
+        q_r, score, precision, sigma_w = _match_at(table, w, ref, right, noise, size)
+        status = np.full(w.shape, DenseStatus.OK, dtype=np.uint8)
+        status[end] = DenseStatus.AT_RANGE_END
+        status[(status == DenseStatus.OK) & ~np.isfinite(score)] = DenseStatus.NOT_SEEN
+        coarse = ~(precision <= MAX_PRECISION_PX)
+        status[(status == DenseStatus.OK) & coarse] = DenseStatus.UNTEXTURED
+        status[(status == DenseStatus.OK) & ~(score >= MIN_SCORE)] = DenseStatus.LOW_SCORE
+        out[size] = _Candidate(w, sigma_w, q_r, score, precision, status)
+    return out
+
+
+_ICI_GAMMA = 2.0
+"""Half-width of the confidence intervals of the window choice, in sigmas: a window
+whose interval misses all the smaller windows' common interval sees more than the
+smooth surface they agree on (5 % of the time by noise alone)."""
+
+
+def _choose_window(candidates: dict) -> np.ndarray:
+    """Per pixel, the largest window size whose match agrees with every smaller one's.
+
+    The intersection of confidence intervals rule (Goldenshluger and Nemirovski; Katkovnik's
+    adaptive windows): windows grow while the intervals ``w +- gamma sigma`` of all
+    matched sizes so far have a common point. A large window is precise where the
+    surface is smooth on its scale; where it is not (a pit, an edge) its depth leaves the
+    smaller windows' interval and growth stops. Sizes whose match is refused are skipped.
+    Returns the index into the sorted sizes (-1: no size matched).
+    """
+    sizes = sorted(candidates)
+    shape = candidates[sizes[0]].w.shape
+    lo, hi = np.full(shape, -np.inf), np.full(shape, np.inf)
+    chosen = np.full(shape, -1, dtype=np.intp)
+    growing = np.ones(shape, dtype=bool)
+    for index, size in enumerate(sizes):
+        c = candidates[size]
+        usable = growing & (c.status == DenseStatus.OK)
+        with np.errstate(invalid="ignore"):
+            new_lo = np.maximum(lo, c.w - _ICI_GAMMA * c.sigma_w)
+            new_hi = np.minimum(hi, c.w + _ICI_GAMMA * c.sigma_w)
+            agree = usable & (new_lo <= new_hi)
+        growing &= ~(usable & ~agree)
+        lo, hi = np.where(agree, new_lo, lo), np.where(agree, new_hi, hi)
+        chosen[agree] = index
+    return chosen
 
 
 # ----- the whole search -------------------------------------------------------------------
@@ -458,39 +642,30 @@ def dense_surface(
         )
     grey = image.astype(np.float64)
     split = model.config.split
-    r = settings.window_px // 2
+    sizes = settings.windows()
+    r = sizes[-1] // 2
     u0, v0, u1, v1 = check_region(model, region, settings.window_px)
     noise = (noise_level(grey[:, :split]), noise_level(grey[:, split:]))
-    # the reference window: the region plus a window's margin (inside the half)
+    # the reference window: the region plus the largest window's margin (inside the half)
     fu0, fv0 = max(0, u0 - r), max(0, v0 - r)
     fu1, fv1 = min(split, u1 + r), min(height, v1 + r)
     left = _Frame(fu0, fv0, fu1, fv1, Half.LEFT)
     levels = _levels(model, left, settings)
-    coarse = _coarse(model, grey, left, levels, settings)
-    dw = levels[1] - levels[0]
+    table = _curve_table(model, left, levels, settings.grid_px)
+    coarse = _coarse(model, grey, table, left, levels, settings)
 
-    # ----- refinement along each pixel's exact curve
-    uu, vv = np.meshgrid(
-        np.arange(fu0, fu1, dtype=np.float64), np.arange(fv0, fv1, dtype=np.float64)
-    )
-    rays = model.rays(np.stack([uu, vv], -1), Half.LEFT)
-    base = _median_filled(coarse.w, settings.smooth_px)
-    base = np.where(
-        np.isfinite(base), base, np.nanmedian(base) if np.isfinite(base).any() else levels.mean()
-    )
     coeffs, origin = spline_coefficients(
         grey, np.array([[split, 0], [width - 1, height - 1]], float), cols=(split, width - 1)
     )
     right_half = _RightHalf(coeffs, origin, split, width, height)
-    ref = _ref_stats(grey[fv0:fv1, fu0:fu1], settings.window_px)
-    w, fine_end = _refine(model, rays, base, ref, right_half, dw, settings)
-    q_r, score, precision, sigma_w = _match_at(model, rays, w, ref, right_half, noise, settings)
-    status = coarse.status.copy()
-    status[(status == DenseStatus.OK) & fine_end] = DenseStatus.AT_RANGE_END
-    status[(status == DenseStatus.OK) & ~np.isfinite(score)] = DenseStatus.NOT_SEEN
-    status[(status == DenseStatus.OK) & ~(precision <= MAX_PRECISION_PX)] = DenseStatus.UNTEXTURED
-    status[(status == DenseStatus.OK) & ~(score >= MIN_SCORE)] = DenseStatus.LOW_SCORE
-    _check_consistency(model, grey, status, q_r.pixels, w, levels, settings)
+    refs = {size: _ref_stats(grey[fv0:fv1, fu0:fu1], size) for size in sizes}
+    match = _adaptive_refinement(table, coarse.w, refs, right_half, noise, levels, settings)
+    w, sigma_w, q_r, status = match.w, match.sigma_w, match.right, match.status
+    _check_consistency(model, grey, status, q_r, w, levels, settings)
+    uu, vv = np.meshgrid(
+        np.arange(fu0, fu1, dtype=np.float64), np.arange(fv0, fv1, dtype=np.float64)
+    )
+    rays = model.rays(np.stack([uu, vv], -1), Half.LEFT)
 
     # ----- crop to the region, sigma of z by the unscented transform of w
     inner = (slice(v0 - fv0, v1 - fv0), slice(u0 - fu0, u1 - fu0))
@@ -508,7 +683,7 @@ def dense_surface(
         if param_cov is not None or misfit_cov is not None:
             ql = np.stack(np.meshgrid(np.arange(u0, u1, dtype=float),
                                       np.arange(v0, v1, dtype=float)), -1)  # fmt: skip
-            cal = _calibration_sigma(model, param_cov, misfit_cov, ql[ok], q_r.pixels[inner][ok])
+            cal = _calibration_sigma(model, param_cov, misfit_cov, ql[ok], q_r[inner][ok])
             sigma_depth[ok] = np.hypot(sigma_depth[ok], cal)
     o, d = rays.origins[inner], rays.directions[inner]
     with np.errstate(invalid="ignore"):
@@ -516,7 +691,7 @@ def dense_surface(
         points = o + t[..., None] * d
         sigma_point = sigma_depth / np.abs(d[..., 2])
     nan_where = ~ok
-    right_px = np.where(nan_where[..., None], np.nan, q_r.pixels[inner])
+    right_px = np.where(nan_where[..., None], np.nan, q_r[inner])
     return DenseSurface(
         region=(u0, v0, u1, v1),
         depth=depth,
@@ -524,13 +699,87 @@ def dense_surface(
         points=points,
         sigma_point=np.where(ok, sigma_point, np.nan),
         right=right_px,
-        precision_px=np.where(np.isfinite(precision[inner]), precision[inner], np.nan),
-        score=score[inner],
+        precision_px=np.where(
+            np.isfinite(match.precision[inner]), match.precision[inner], np.nan
+        ),  # fmt: skip
+        score=match.score[inner],
         grey=grey[v0:v1, u0:u1],
         status=status,
         noise=noise,
         levels=int(levels.size),
+        window=np.where(ok, match.window[inner], 0).astype(np.uint16),
     )
+
+
+_START_SPAN = 4
+"""A window's start surface is fitted over this many window sides (:func:`_smooth_base`):
+its shape error inside the window adds to the match's error, and a fit over about
+``_START_SPAN ** 2`` windows' depths keeps it below their own scatter."""
+
+
+class _Match(NamedTuple):
+    """The chosen window's match per pixel (:class:`_Candidate`'s fields) and its side
+    (0: none matched; ``status`` then says why the largest size failed)."""
+
+    w: np.ndarray
+    sigma_w: np.ndarray
+    right: np.ndarray
+    score: np.ndarray
+    precision: np.ndarray
+    status: np.ndarray
+    window: np.ndarray
+
+
+def _picked(candidates: dict, chosen: np.ndarray) -> _Match:
+    """Each pixel's fields from its chosen size (``chosen``: index into the sorted sizes)."""
+    sizes = sorted(candidates)
+    pick = np.maximum(chosen, 0)
+
+    def gather(field):
+        stack = np.stack([getattr(candidates[size], field) for size in sizes])
+        index = pick[None, ..., None] if stack.ndim == 4 else pick[None]
+        return np.take_along_axis(stack, index, axis=0)[0]
+
+    matched = chosen >= 0
+    # no size matched: the largest size's reason (it has the most evidence)
+    status = np.where(matched, DenseStatus.OK, candidates[sizes[-1]].status).astype(np.uint8)
+    window = np.where(matched, np.asarray(sizes)[pick], 0)
+    return _Match(gather("w"), gather("sigma_w"), gather("right"), gather("score"),
+                  gather("precision"), status, window)  # fmt: skip
+
+
+def _adaptive_refinement(table, coarse_w, refs: dict, right, noise, levels,
+                         settings: DenseSettings) -> _Match:  # fmt: skip
+    """``settings.passes`` refinement passes, every window size each, the size by ICI.
+
+    The first pass starts from the sweep's depths, each later one from the previous
+    pass's chosen depths; every size's start is that surface smoothed over
+    :data:`_START_SPAN` of its windows. The start's shape error inside a window enters
+    the depth at the window's centre whole; it shrinks with every pass as the depths
+    it is fitted to improve (how much: ``docs/surface.md``).
+    """
+    sizes = sorted(refs)
+    start = coarse_w
+    for _ in range(settings.passes):
+        bases = {size: _smooth_base(start, settings.smooth_px, _START_SPAN * size + 1)
+                 for size in sizes}  # fmt: skip
+        if not np.isfinite(bases[sizes[0]]).any():  # no depth anywhere: the range's middle
+            bases = dict.fromkeys(sizes, np.full(coarse_w.shape, levels.mean()))
+        candidates = _refine(table, bases, refs, right, noise, settings)
+        chosen = _choose_window(candidates)
+        match = _picked(candidates, chosen)
+        start = np.where(chosen >= 0, match.w, np.nan)
+    return match
+
+
+class _Along(NamedTuple):
+    """The other half along curves: the curve point q (h, w, 2), dq/dw (h, w, 2), the
+    spline's value (h, w) and gradient (h, w, 2) there (NaN: not seen)."""
+
+    q: np.ndarray
+    dq_dw: np.ndarray
+    values: np.ndarray
+    gradient: np.ndarray
 
 
 class _RightHalf(NamedTuple):
@@ -542,65 +791,45 @@ class _RightHalf(NamedTuple):
     width: int
     height: int
 
-    def sample(self, pixels, gradient=False):
-        return _sample_right(self.coeffs, self.origin, pixels, self.split, self.width,
-                             self.height, gradient=gradient)  # fmt: skip
+    def along(self, table: _CurveTable, w: np.ndarray) -> _Along:
+        """The right half at each pixel's curve point of inverse depth ``w`` (h, w)."""
+        from endomeasure.measure._dense_kernels import curve_samples
+
+        return _Along(*curve_samples(
+            table.field, table.seen, table.mx, table.my, table.w0, table.dw,
+            np.ascontiguousarray(w), self.coeffs, float(self.origin[0]),
+            float(self.origin[1]), float(self.split), float(self.width - 1),
+            float(self.height - 1),
+        ))  # fmt: skip
 
 
-def _refine(model, rays, base, ref, right: _RightHalf, dw: float, settings: DenseSettings):
-    """Inverse depth per pixel from ZNCC at sub-levels around ``base`` along each exact
-    curve; and where the peak sits at an end of the sub-levels."""
-    n_fine = int(np.ceil(settings.fine_reach * settings.fine_steps))
-    offsets = np.arange(-n_fine, n_fine + 1) / settings.fine_steps * dw
-    fine = np.full((offsets.size, *base.shape), np.nan)
-    for j, dj in enumerate(offsets):
-        q = model.project(_ray_points(rays, base + dj), Half.RIGHT)
-        fine[j] = _zncc(ref, right.sample(q.pixels), settings.window_px)[0]
-    best = np.argmax(np.nan_to_num(fine, nan=-2.0), axis=0)
-    rows, cols = np.indices(best.shape)
-    y0 = fine[best, rows, cols]
-    y_minus = fine[np.maximum(best - 1, 0), rows, cols]
-    y_plus = fine[np.minimum(best + 1, offsets.size - 1), rows, cols]
-    # the window's best offset aligns the window on average: it adds to the window's mean
-    # base depth, not to the centre's own (whose deviation from that mean would enter whole)
-    w = _box(base, settings.window_px) + np.interp(
-        best + _parabola(y_minus, y0, y_plus), np.arange(offsets.size), offsets
-    )
-    fine_end = (
-        (best == 0) | (best == offsets.size - 1) | ~(np.isfinite(y_minus) & np.isfinite(y_plus))
-    )
-    return w, fine_end
-
-
-def _match_at(model, rays, w, ref, right: _RightHalf, noise, settings: DenseSettings):
-    """The match at inverse depth ``w``: exact right pixel, ZNCC, precision along the
-    curve (px) and the sigma of ``w``."""
+def _match_at(table: _CurveTable, w, ref, right: _RightHalf, noise, window: int):
+    """The match at inverse depth ``w`` with square windows of side ``window``: the right
+    pixel, the noise-corrected ZNCC, the precision along the curve (px) and the sigma
+    of ``w``."""
     from endomeasure.measure.correspondence import _spline_derivative_noise
 
-    q_r = model.project(_ray_points(rays, w), Half.RIGHT)
-    plus = model.project(_ray_points(rays, w * (1 + _TANGENT_STEP)), Half.RIGHT).pixels
-    minus = model.project(_ray_points(rays, w * (1 - _TANGENT_STEP)), Half.RIGHT).pixels
-    dq_dw = (plus - minus) / (2.0 * _TANGENT_STEP * w[..., None])
-    rate = np.linalg.norm(dq_dw, axis=-1)  # px per unit inverse depth
-    tangent = dq_dw / rate[..., None]
-    values, gu, gv = right.sample(q_r.pixels, gradient=True)
-    ncc, gain, var_r, mean_r = _zncc(ref, values, settings.window_px)
+    along = right.along(table, w)
+    rate = np.linalg.norm(along.dq_dw, axis=-1)  # px per unit inverse depth
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tangent = along.dq_dw / rate[..., None]
+    ncc, gain, var_r, mean_r = _zncc(ref, along.values, window)
     # each window's noise at its own signal level (the sensor's noise grows with it)
     noise_l = noise[0].sigma(ref.mean)
     noise_r = noise[1].sigma(mean_r)
-    n = settings.window_px**2
-    frac = np.nan_to_num(q_r.pixels - np.floor(q_r.pixels))
-    interpolated = _box(noise_gain(frac[..., 0]) * noise_gain(frac[..., 1]), settings.window_px)
+    n = window**2
+    frac = np.nan_to_num(along.q - np.floor(along.q))
+    interpolated = _box(noise_gain(frac[..., 0]) * noise_gain(frac[..., 1]), window)
     # the noise-corrected score as the operator search's (so that MIN_SCORE means the
     # same); the windows' variances per degree of freedom (n - 3 about their plane)
     dof = n / (n - 3)
     score = noise_corrected_score(ncc, (ref.var * dof, noise_l**2),
                                   (var_r * dof, noise_r**2 * interpolated))  # fmt: skip
-    g = np.nan_to_num(gu * tangent[..., 0] + gv * tangent[..., 1])
+    g = np.nan_to_num(np.einsum("...i,...i->...", along.gradient, tangent))
     # the derivative's energy left once the windows lose their mean and trend (the part
     # of the signal the correlation uses); the derivative of the interpolated noisy image
     # carries noise energy of its own over the n - 3 remaining degrees of freedom
-    energy = n * _detrended(g, settings.window_px)[3]
+    energy = n * _detrended(g, window)[3]
     energy -= (n - 3) * _spline_derivative_noise() * noise_r**2
     with np.errstate(invalid="ignore", divide="ignore"):
         # the fit ref ~ gain * other + plane; its residual beyond the noise (over its
@@ -610,7 +839,7 @@ def _match_at(model, rays, w, ref, right: _RightHalf, noise, settings: DenseSett
         misfit = np.sqrt(np.maximum(residual - expected, 0.0))
         precision = match_precision(energy, n, 1.0 / np.abs(gain), noise_l, noise_r, misfit, 1.0)
         sigma_w = precision / rate
-    return q_r, score, precision, sigma_w
+    return along.q, score, precision, sigma_w
 
 
 _CALIBRATION_NODES = 400
@@ -668,7 +897,10 @@ def _calibration_sigma(model, param_cov, misfit_cov, left, right) -> np.ndarray:
 
 def _check_consistency(model, grey, status, q_r, w, levels, settings: DenseSettings) -> None:
     """Mark ``INCONSISTENT`` (in place) the OK pixels whose right match's own coarse
-    depth (the sweep from the right half) differs by more than ``consistency_levels``."""
+    depth (the sweep from the right half) differs by more than ``consistency_levels``.
+
+    Where the right half's sweep found no depth (texture too weak for its window) there
+    is nothing to compare: such a match stands on its own score and window agreement."""
     ok = status == DenseStatus.OK
     if not ok.any():
         return
@@ -680,25 +912,16 @@ def _check_consistency(model, grey, status, q_r, w, levels, settings: DenseSetti
     ru1 = int(min(width, np.ceil(q_ok[:, 0].max()) + r + 2))
     rv0 = int(max(0, np.floor(q_ok[:, 1].min()) - r - 1))
     rv1 = int(min(height, np.ceil(q_ok[:, 1].max()) + r + 2))
-    back = _coarse(model, grey, _Frame(ru0, rv0, ru1, rv1, Half.RIGHT), levels, settings)
+    frame = _Frame(ru0, rv0, ru1, rv1, Half.RIGHT)
+    table = _curve_table(model, frame, levels, settings.grid_px)
+    back = _coarse(model, grey, table, frame, levels, settings)
     q_safe = np.nan_to_num(q_r, nan=0.0)
     iu = np.clip(np.rint(q_safe[..., 0]).astype(np.intp) - ru0, 0, ru1 - ru0 - 1)
     iv = np.clip(np.rint(q_safe[..., 1]).astype(np.intp) - rv0, 0, rv1 - rv0 - 1)
-    agree = np.abs(back.w[iv, iu] - w) <= settings.consistency_levels * (levels[1] - levels[0])
-    status[ok & ~agree] = DenseStatus.INCONSISTENT
-
-
-def _sample_right(coeffs, origin, pixels, split, width, height, gradient=False):
-    """Spline samples of the right half at ``pixels`` (..., 2); NaN outside the half."""
-    u, v = pixels[..., 0], pixels[..., 1]
+    own = back.w[iv, iu]
     with np.errstate(invalid="ignore"):
-        inside = (u >= split) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
-    safe = np.where(inside[..., None], pixels, [[split, 0.0]])
-    values, gu, gv = spline_sample(coeffs, origin, safe)
-    values = np.where(inside, values, np.nan)
-    if gradient:
-        return values, np.where(inside, gu, np.nan), np.where(inside, gv, np.nan)
-    return values
+        differ = np.abs(own - w) > settings.consistency_levels * (levels[1] - levels[0])
+    status[ok & differ] = DenseStatus.INCONSISTENT
 
 
 def accuracy_classes(surface: DenseSurface, bands_percent: tuple[float, float]) -> np.ndarray:
