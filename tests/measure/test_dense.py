@@ -104,3 +104,88 @@ def test_the_calibrations_share_of_the_depth_sigma_matches_monte_carlo(plane):
     for k in range(left.shape[0]):
         tri = triangulate(model, left[k] + offsets[:, :2], right[k] + offsets[:, 2:], params=params)
         assert predicted[k] == pytest.approx(np.std(tri.points[:, 2]), rel=0.1)
+
+
+# ----- the pieces: curve table and kernel, window choice, start surface -------------------
+
+TABLE_TOLERANCE_PX = 2e-3
+"""Largest error of an interpolated curve point against the exact projection, px: the
+map is smooth (tricubic interpolation error ~1e-5 px inside the overlap); the matches'
+own precision is some 0.02 px at best, so the table adds nothing visible."""
+
+
+def test_curve_table_points_and_samples_match_exact_projections_and_the_spline():
+    from endomeasure.conventions import Half
+    from endomeasure.interpolation import spline_coefficients, spline_sample
+    from endomeasure.measure import dense
+
+    model = make_raytrace_model()
+    image = render_plane(model, DEPTH_MM, np.random.default_rng(3)).astype(np.float64)
+    width, height = model.config.image_size
+    split = model.config.split
+    frame = dense._Frame(*REGION, Half.LEFT)
+    levels = dense._levels(model, frame, SETTINGS)
+    table = dense._curve_table(model, frame, levels, SETTINGS.grid_px)
+    coeffs, origin = spline_coefficients(
+        image, np.array([[split, 0], [width - 1, height - 1]], float), cols=(split, width - 1)
+    )
+    right = dense._RightHalf(coeffs, origin, split, width, height)
+    rng = np.random.default_rng(5)
+    u0, v0, u1, v1 = REGION
+    w = rng.uniform(levels[1], levels[-2], size=(v1 - v0, u1 - u0))
+    along = right.along(table, w)
+    uu, vv = np.meshgrid(np.arange(u0, u1, dtype=float), np.arange(v0, v1, dtype=float))
+    rays = model.rays(np.stack([uu, vv], -1), Half.LEFT)
+    exact = model.project(dense._ray_points(rays, w), Half.RIGHT).pixels
+    both = np.isfinite(exact).all(-1) & np.isfinite(along.q).all(-1)
+    assert both.sum() > 0.9 * w.size  # not a vacuous comparison
+    assert np.max(np.abs(along.q[both] - exact[both])) < TABLE_TOLERANCE_PX
+    # dq/dw against a central difference of the exact projections
+    h = 1e-4 * w
+    plus = model.project(dense._ray_points(rays, w + h), Half.RIGHT).pixels
+    minus = model.project(dense._ray_points(rays, w - h), Half.RIGHT).pixels
+    slope = (plus - minus) / (2 * h[..., None])
+    rate = np.linalg.norm(slope[both], axis=-1)
+    assert np.max(np.linalg.norm(along.dq_dw[both] - slope[both], axis=-1) / rate) < 1e-3
+    # the compiled spline samples are the numpy interpolant's (whose weights are float32)
+    inside = both & np.isfinite(along.values)
+    values, gu, gv = spline_sample(coeffs, origin, along.q[inside])
+    assert np.allclose(along.values[inside], values, rtol=1e-5, atol=1e-4)
+    assert np.allclose(along.gradient[inside], np.stack([gu, gv], -1), rtol=1e-5, atol=1e-4)
+
+
+def _candidate(w, sigma, status=None):
+    from endomeasure.measure.dense import _Candidate
+
+    w, sigma = np.asarray(w, float), np.asarray(sigma, float)
+    status = np.zeros(w.shape, np.uint8) if status is None else np.asarray(status, np.uint8)
+    nan = np.full(w.shape, np.nan)
+    return _Candidate(w, sigma, np.full((*w.shape, 2), np.nan), nan, nan, status)
+
+
+def test_window_choice_grows_while_the_intervals_intersect():
+    """Four pixels, three sizes: all agree (the largest), the largest leaves the smaller
+    ones' common interval (the middle one), the smallest is refused (skipped), none
+    matched (-1)."""
+    from endomeasure.measure.dense import _ICI_GAMMA, _choose_window
+
+    far = 3 * _ICI_GAMMA  # sigmas apart: intervals of half-width gamma sigma cannot meet
+    small = _candidate([1.0, 1.0, 5.0, 1.0], [1.0, 1.0, 1.0, 1.0], [0, 0, DenseStatus.LOW_SCORE, 3])
+    middle = _candidate([1.5, 1.5, 1.2, 1.0], [0.5, 0.5, 0.5, 0.5], [0, 0, 0, 3])
+    large = _candidate([1.4, 1.5 + far * 0.5, 1.1, 1.0], [0.1, 0.1, 0.1, 0.1], [0, 0, 0, 4])
+    chosen = _choose_window({15: small, 31: middle, 63: large})
+    assert chosen.tolist() == [2, 1, 2, -1]
+
+
+def test_start_surface_reproduces_a_quadratic_through_holes():
+    """The local quadratic fit is exact for a quadratic surface, also where depths are
+    missing (holes carry no weight, nothing is filled in)."""
+    from endomeasure.measure.dense import _smooth_base
+
+    vv, uu = np.mgrid[0:90, 0:120].astype(float)
+    w = 0.05 + 1e-4 * uu - 2e-4 * vv + 3e-7 * uu**2 - 1e-7 * uu * vv + 2e-7 * vv**2
+    holes = w.copy()
+    holes[30:50, 40:70] = np.nan  # a hole inside the fit's reach
+    holes[::7, ::5] = np.nan
+    fitted = _smooth_base(holes, smooth_px=1, side=61)
+    assert np.max(np.abs(fitted - w)) < 1e-9
