@@ -1714,7 +1714,11 @@ def surface_command(
         typer.Option("--plot", help="PNG: shaded depth and the red/yellow/green mask."),
     ] = None,
     window: Annotated[
-        int, typer.Option("--window", help="Correlation window side, px (odd).")
+        int,
+        typer.Option(
+            "--window",
+            help="Plane-sweep window side, px (odd); the refinement picks its windows per pixel.",
+        ),
     ] = defaults.DENSE_WINDOW_PX,
     wait_s: WaitOption = defaults.LOCK_WAIT_S,
     json_output: JsonOption = False,

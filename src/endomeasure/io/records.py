@@ -658,7 +658,8 @@ def surface_record(
 
     Arrays over the region's rows and columns: ``depth`` and ``sigma_depth`` (float32,
     mm, NaN without depth), ``status`` (uint8, ``DenseStatus``), ``score`` (ZNCC,
-    float32), ``right`` (matched right pixel, float32, px); ``region`` (u0, v0, u1, v1).
+    float32), ``right`` (matched right pixel, float32, px), ``window`` (uint16, side of the
+    window the depth comes from, px; 0 without depth); ``region`` (u0, v0, u1, v1).
     """
     arrays = {
         "region": np.asarray(surface.region, dtype=np.int32),
@@ -667,8 +668,9 @@ def surface_record(
         "status": surface.status.astype(np.uint8),
         "score": np.nan_to_num(surface.score, nan=-2.0).astype(np.float32),
         "right": surface.right.astype(np.float32),
+        "window": surface.window.astype(np.uint16),
     }
-    units = {"depth": "mm", "sigma_depth": "mm", "right": "px", "region": "px"}
+    units = {"depth": "mm", "sigma_depth": "mm", "right": "px", "region": "px", "window": "px"}
     return Record(
         SURFACE_RECORD,
         name,

@@ -19,7 +19,10 @@ from endomeasure.errors import BadInputError
 
 __all__ = ["SurfaceReport", "surface"]
 
-METHOD = "plane sweep (ZNCC) + refinement along the exact curve; sigma: UT of the match"
+METHOD = (
+    "plane sweep (ZNCC) + refinement along the exact curve, window per pixel by "
+    "intersecting confidence intervals; sigma: UT of the match and the calibration"
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,7 +89,8 @@ def surface(
     ply, plot : path, optional
         Point cloud (``.ply``) and picture (``.png``) to write.
     window_px : int
-        Side of the correlation window (odd).
+        Side of the plane sweep's correlation window (odd); the refinement chooses its
+        windows per pixel (``defaults.DENSE_WINDOW_RANGE_PX``).
     store : bool
         Write the record (replacing that of the same image and model).
 
@@ -163,6 +167,7 @@ def surface(
     )  # fmt: skip
     if store:
         attrs = {"method": METHOD, "window_px": settings.window_px,
+                 "window_range_px": list(settings.window_range_px),
                  "depth_range_mm": list(settings.depth_range_mm), "levels": result.levels,
                  "noise_level": [list(n) for n in result.noise], "counts": counts}  # fmt: skip
         with edit_session(session) as writer:
