@@ -177,9 +177,11 @@ def test_window_choice_grows_while_the_intervals_intersect():
     assert chosen.tolist() == [2, 1, 2, -1]
 
 
-def test_start_surface_reproduces_a_quadratic_through_holes():
+@pytest.mark.parametrize("side", [61, 253])  # every pixel; every 7th and interpolated
+def test_start_surface_reproduces_a_quadratic_through_holes(side):
     """The local quadratic fit is exact for a quadratic surface, also where depths are
-    missing (holes carry no weight, nothing is filled in)."""
+    missing (holes carry no weight, nothing is filled in) and between the nodes of a
+    decimated fit (Catmull-Rom interpolation reproduces quadratics)."""
     from endomeasure.measure.dense import _smooth_base
 
     vv, uu = np.mgrid[0:90, 0:120].astype(float)
@@ -187,5 +189,5 @@ def test_start_surface_reproduces_a_quadratic_through_holes():
     holes = w.copy()
     holes[30:50, 40:70] = np.nan  # a hole inside the fit's reach
     holes[::7, ::5] = np.nan
-    fitted = _smooth_base(holes, smooth_px=1, side=61)
+    fitted = _smooth_base(holes, smooth_px=1, side=side)
     assert np.max(np.abs(fitted - w)) < 1e-9

@@ -462,30 +462,45 @@ def _coarse(model, grey, table: _CurveTable, frame: _Frame, levels: np.ndarray,
     return _Coarse(w, status)
 
 
+_FIT_TAPS = 32
+"""The start fit runs on every ``side // _FIT_TAPS``-th pixel (at most about that many
+taps per window side) and is interpolated back: the depths it fits are window averages,
+correlated over at least 15 px, and a fit over 253 px at every pixel would cost more than
+the matching."""
+
+
 def _smooth_base(w: np.ndarray, smooth_px: int, side: int) -> np.ndarray:
     """A smooth start surface from inverse depths ``w`` (NaN: none), (h, w).
 
-    A median of ``smooth_px`` over the known depths removes outliers; then, at every
-    pixel, a quadratic surface is fitted by least squares to the known depths of the
-    ``side`` x ``side`` window around it (a normalised-convolution Savitzky-Golay fit:
-    holes carry no weight, nothing is filled in) and evaluated there. A window warped by
-    this surface and shifted by its offset is right at its centre when the surface has
-    the right shape over the window, whatever its level, so the fit keeps the slope and
-    curvature and leaves no structure smaller than its side. NaN where fewer than a
-    tenth of the window's depths are known.
+    A median of ``smooth_px`` over the known depths removes outliers; then, around every
+    node of a grid, a quadratic surface is fitted by least squares to the known depths of
+    the ``side`` x ``side`` window (a normalised-convolution Savitzky-Golay fit: holes carry
+    no weight, nothing is filled in) and evaluated there; Catmull-Rom interpolation, exact
+    for quadratics, fills in between. A window warped by this surface and shifted by its
+    offset is right at its centre when the surface has the right shape over the window,
+    whatever its level, so the fit keeps the slope and curvature and leaves no structure
+    smaller than its side. Where fewer than a tenth of the window's depths are known,
+    the nearest fitted value.
     """
     import cv2
     from scipy.ndimage import distance_transform_edt, median_filter
 
     valid = np.isfinite(w)
-    out = np.full(w.shape, np.nan)
     if valid.sum() < 6:
-        return out
+        return np.full(w.shape, np.nan)
     med = median_filter(np.where(valid, w, np.nanmedian(w)), size=smooth_px, mode="nearest")
-    mask = valid.astype(np.float64)
-    data = np.where(valid, med, 0.0)
-    r = side // 2
-    offsets = np.arange(-r, r + 1, dtype=np.float64) / max(r, 1)
+    step = max(1, side // _FIT_TAPS)
+    # nodes every `step` px from one step before the frame to one after its last pixel
+    ny, nx = ((n - 1) // step + 3 for n in w.shape)
+    rows, cols = step * (np.arange(ny) - 1), step * (np.arange(nx) - 1)
+    inside = (rows[:, None] >= 0) & (rows[:, None] < w.shape[0])
+    inside = inside & (cols[None, :] >= 0) & (cols[None, :] < w.shape[1])
+    r_in = np.clip(rows, 0, w.shape[0] - 1)[:, None]
+    c_in = np.clip(cols, 0, w.shape[1] - 1)[None, :]
+    mask = (inside & valid[r_in, c_in]).astype(np.float64)
+    data = np.where(mask > 0, med[r_in, c_in], 0.0)
+    reach = (side // 2) // step
+    offsets = np.arange(-reach, reach + 1, dtype=np.float64) / max(reach, 1)
     powers = [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)]  # du^a dv^b
 
     def window_sum(x, a, b):  # sum over the window of x * du^a * dv^b (du, dv: offsets)
@@ -493,21 +508,36 @@ def _smooth_base(w: np.ndarray, smooth_px: int, side: int) -> np.ndarray:
         return cv2.sepFilter2D(x, cv2.CV_64F, offsets**a, offsets**b,
                                borderType=cv2.BORDER_CONSTANT)  # fmt: skip
 
-    moments = {}
-    for a in range(5):
-        for b in range(5 - a):
-            moments[a, b] = window_sum(mask, a, b)
+    moments = {(a, b): window_sum(mask, a, b) for a in range(5) for b in range(5 - a)}
     normal = np.stack([np.stack([moments[a1 + a2, b1 + b2] for a2, b2 in powers], -1)
                        for a1, b1 in powers], -2)  # fmt: skip
     rhs = np.stack([window_sum(data, a, b) for a, b in powers], -1)
-    enough = moments[0, 0] >= 0.1 * side * side
+    enough = moments[0, 0] >= 0.1 * (2 * reach + 1) ** 2
     if not enough.any():
-        return out
-    coef = np.linalg.solve(normal[enough] + 1e-9 * np.eye(6), rhs[enough][..., None])
-    out[enough] = coef[:, 0, 0]
+        return np.full(w.shape, np.nan)
+    coarse = np.full(enough.shape, np.nan)
+    coarse[enough] = np.linalg.solve(normal[enough] + 1e-9 * np.eye(6),
+                                     rhs[enough][..., None])[:, 0, 0]  # fmt: skip
     # beyond the known depths' reach: the nearest fitted value (a start, not a depth)
     _, (iy, ix) = distance_transform_edt(~enough, return_indices=True)
-    return out[iy, ix]
+    coarse = coarse[iy, ix]
+    across_rows = _catmull_rom_matrix(w.shape[0], ny, step)
+    across_cols = _catmull_rom_matrix(w.shape[1], nx, step)
+    return across_rows @ coarse @ across_cols.T
+
+
+def _catmull_rom_matrix(n: int, nodes: int, step: int) -> np.ndarray:
+    """(n, nodes) weights interpolating values at nodes ``step * (k - 1)`` to the pixels
+    ``0..n-1`` (Catmull-Rom; the outermost nodes repeat)."""
+    t = (np.arange(n) + step) / step
+    base = np.floor(t).astype(np.intp)
+    f = t - base
+    weights = np.stack([0.5 * (-f**3 + 2 * f**2 - f), 0.5 * (3 * f**3 - 5 * f**2 + 2),
+                        0.5 * (-3 * f**3 + 4 * f**2 + f), 0.5 * (f**3 - f**2)], -1)  # fmt: skip
+    out = np.zeros((n, nodes))
+    for tap in range(4):
+        np.add.at(out, (np.arange(n), np.clip(base - 1 + tap, 0, nodes - 1)), weights[:, tap])
+    return out
 
 
 class _Candidate(NamedTuple):
