@@ -490,8 +490,9 @@ def _smooth_base(w: np.ndarray, smooth_px: int, side: int) -> np.ndarray:
         return np.full(w.shape, np.nan)
     med = median_filter(np.where(valid, w, np.nanmedian(w)), size=smooth_px, mode="nearest")
     step = max(1, side // _FIT_TAPS)
-    # nodes every `step` px from one step before the frame to one after its last pixel
-    ny, nx = ((n - 1) // step + 3 for n in w.shape)
+    # nodes every `step` px from one step before the frame to two after its last pixel
+    # (the interpolation's stencil)
+    ny, nx = ((n - 1) // step + 4 for n in w.shape)
     rows, cols = step * (np.arange(ny) - 1), step * (np.arange(nx) - 1)
     inside = (rows[:, None] >= 0) & (rows[:, None] < w.shape[0])
     inside = inside & (cols[None, :] >= 0) & (cols[None, :] < w.shape[1])
