@@ -8,32 +8,41 @@ Method
 ------
 1. **Plane sweep (coarse).** Depth levels uniform in inverse depth ``w = 1/z`` over the
    depth range, so dense that a level moves the other half's pixel by at most
-   ``coarse_step_px``. For each level the map ``q_right(q_left, w)`` of the constant-z
-   plane is computed exactly on a grid of left pixels (every ``grid_px``) and
-   interpolated in between; the right half is warped into the left half's pixels by it
-   and compared with zero-mean normalised cross-correlation (ZNCC) over a square window
-   (box filters). The best level per pixel and a parabola through its neighbours give the
-   coarse depth. The same sweep from the right half gives its own coarse depth map, for
-   the left-right check.
-2. **Refinement along the true curve.** Around each pixel's coarse depth (smoothed by a
-   median, so that a window follows the surface's slope), the right half is sampled
-   (cubic B-spline) at the *exact* projections of every pixel's ray point at
-   ``fine_steps`` sub-levels per coarse level; the ZNCC peak and a parabola give the
-   depth. The 3D point is the left ray's point at that depth, which by construction is
-   where the two rays meet (the match lies on the curve).
-3. **Precision.** The match's standard deviation along the curve (px) is the operator
+   ``coarse_step_px``. The exact other-half pixels of a grid of left pixels (every
+   ``grid_px``) on every level form a table (:class:`_CurveTable`); the right half is
+   warped into the left half's pixels by each level's map and compared with zero-mean
+   normalised cross-correlation (ZNCC, about each window's best plane) over a square
+   window (box filters). The best level per pixel and a parabola give the coarse depth.
+   The same sweep from the right half gives its own coarse depth map, for the left-right
+   check.
+2. **Refinement along the curve, per window size.** Square windows of several sides
+   (``window_range_px``) are warped by a start surface and shifted together along their
+   pixels' curves (points from the table, Catmull-Rom in space and depth, the right half
+   sampled by its cubic B-spline in a compiled kernel); the ZNCC peak and a parabola give
+   each window's offset, added to the start at the window's centre. The 3D point is the
+   left ray's point at that depth, which by construction is where the two rays meet.
+3. **Window per pixel** (:func:`_choose_window`): the largest size whose depth interval
+   meets those of all smaller sizes (intersection of confidence intervals), so windows
+   grow where the surface is smooth on their scale and stay small at a pit or an edge.
+4. **Passes** (:func:`_adaptive_refinement`): the first starts from the sweep, each later
+   one from the previous one's depths, fitted by a local quadratic over a few windows
+   (:func:`_smooth_base`); the start's shape error inside a window enters the depth, and
+   it shrinks with each pass.
+5. **Precision.** The match's standard deviation along the curve (px) is the operator
    search's formula (:func:`~endomeasure.measure.correspondence.match_precision`) from
    the warped window's derivative energy along the curve tangent, both halves' noise and
    the window's misfit; divided by ``|dq/dw|`` it is the sigma of ``w``, carried to ``z``
    by the unscented transform (:func:`~endomeasure.solvers.uncertainty.unscented`,
-   vectorised over pixels). Calibration uncertainty is not included.
-4. **Refusals** (:class:`DenseStatus`), never a guessed depth: the other half does not
-   see the window at any depth (``NOT_SEEN``), the predicted precision is worse than
+   vectorised over pixels); the calibration's share is added when given
+   (:func:`_calibration_sigma`).
+6. **Refusals** (:class:`DenseStatus`), never a guessed depth, when no window size
+   matched (the largest size's reason): the other half does not see the window
+   (``NOT_SEEN``), the predicted precision is worse than
    :data:`~endomeasure.measure.correspondence.MAX_PRECISION_PX` (``UNTEXTURED``), the
-   ZNCC is below :data:`~endomeasure.measure.correspondence.MIN_SCORE`
-   (``LOW_SCORE``), the peak sits at an end of the depth range (``AT_RANGE_END``), or the
-   right half's own depth at the matched pixel disagrees (``INCONSISTENT``: occlusion or
-   a wrong peak).
+   ZNCC is below :data:`~endomeasure.measure.correspondence.MIN_SCORE` (``LOW_SCORE``),
+   the peak sits at an end of the searched stretch (``AT_RANGE_END``); or the right
+   half's own depth at the matched pixel disagrees (``INCONSISTENT``: occlusion or a
+   wrong peak).
 """
 
 from __future__ import annotations
@@ -583,8 +592,8 @@ def _refine(table: _CurveTable, bases: dict, refs: dict, right: _RightHalf, nois
         status = np.full(w.shape, DenseStatus.OK, dtype=np.uint8)
         status[end] = DenseStatus.AT_RANGE_END
         status[(status == DenseStatus.OK) & ~np.isfinite(score)] = DenseStatus.NOT_SEEN
-        coarse = ~(precision <= MAX_PRECISION_PX)
-        status[(status == DenseStatus.OK) & coarse] = DenseStatus.UNTEXTURED
+        imprecise = ~(precision <= MAX_PRECISION_PX)
+        status[(status == DenseStatus.OK) & imprecise] = DenseStatus.UNTEXTURED
         status[(status == DenseStatus.OK) & ~(score >= MIN_SCORE)] = DenseStatus.LOW_SCORE
         out[size] = _Candidate(w, sigma_w, q_r, score, precision, status)
     return out
