@@ -771,7 +771,15 @@ class _Match(NamedTuple):
 
 
 def _picked(candidates: dict, chosen: np.ndarray) -> _Match:
-    """Each pixel's fields from its chosen size (``chosen``: index into the sorted sizes)."""
+    """Each pixel's fields from its chosen size (``chosen``: index into the sorted sizes).
+
+    The chosen window agrees with the smaller ones only within their intervals, so its
+    smoothing of what it cannot follow (a pit narrower than the window) may reach their
+    sigma, far beyond its own. Its departure from each smaller matched window beyond
+    that window's noise, ``(w_k - w_j)^2 - sigma_j^2`` (negative on average where the
+    surface is smooth: the nested windows share their noise), estimates that bias; the
+    largest is added to the sigma in quadrature.
+    """
     sizes = sorted(candidates)
     pick = np.maximum(chosen, 0)
 
@@ -780,11 +788,19 @@ def _picked(candidates: dict, chosen: np.ndarray) -> _Match:
         index = pick[None, ..., None] if stack.ndim == 4 else pick[None]
         return np.take_along_axis(stack, index, axis=0)[0]
 
+    w, sigma_w = gather("w"), gather("sigma_w")
+    bias2 = np.zeros(w.shape)
+    for index, size in enumerate(sizes[:-1]):
+        c = candidates[size]
+        smaller = (index < chosen) & (c.status == DenseStatus.OK)
+        with np.errstate(invalid="ignore"):
+            excess = (w - c.w) ** 2 - c.sigma_w**2
+        bias2 = np.where(smaller & (excess > bias2), excess, bias2)
     matched = chosen >= 0
     # no size matched: the largest size's reason (it has the most evidence)
     status = np.where(matched, DenseStatus.OK, candidates[sizes[-1]].status).astype(np.uint8)
     window = np.where(matched, np.asarray(sizes)[pick], 0)
-    return _Match(gather("w"), gather("sigma_w"), gather("right"), gather("score"),
+    return _Match(w, np.sqrt(sigma_w**2 + bias2), gather("right"), gather("score"),
                   gather("precision"), status, window)  # fmt: skip
 
 
