@@ -233,6 +233,7 @@ def main() -> int:
     import shutil
     import tempfile
 
+    from endomeasure import defaults
     from endomeasure.io.records import load_calibrated_model
     from endomeasure.io.session import open_session
     from endomeasure.measure.dense import DenseSettings
@@ -250,7 +251,9 @@ def main() -> int:
             cm = load_calibrated_model(reader, "raytrace", copy)
             images = {n: reader.image(n) for n in sorted(shots) if n in reader.image_names()}
     images = {n: im[..., :3].mean(axis=2) if im.ndim == 3 else im for n, im in images.items()}
-    settings = DenseSettings(depth_range_mm=search_depths(cm))
+    settings = DenseSettings(  # as `measure --kind profile`
+        depth_range_mm=search_depths(cm), window_range_px=defaults.PROFILE_WINDOW_RANGE_PX
+    )
     rng = np.random.default_rng(args.seed)
     rows, extreme_ok, own_ok, refused, seconds = [], [], [], [], []
     for name, grey in images.items():

@@ -21,6 +21,7 @@ __all__ = [
     "PATCH_PX",
     "DENSE_WINDOW_PX",
     "DENSE_WINDOW_RANGE_PX",
+    "PROFILE_WINDOW_RANGE_PX",
     "TRUST_BANDS_PERCENT",
     "WARN_PERCENT",
     "ZONE_MM",
@@ -55,6 +56,14 @@ window. Each pixel therefore gets the largest window that agrees with all smalle
 (the intersection of confidence intervals): large where the surface is smooth on that
 scale, small at a pit or an edge. 15 px still holds enough samples for a correlation
 about a plane; 127 px is about a third of a small sensor's half."""
+
+PROFILE_WINDOW_RANGE_PX = (15, 31)
+"""The refinement's windows for depth profiles (px, odd): a profile is read at its
+extreme, the bottom of a pit or dent, where a window wider than the feature averages it
+away. The window choice stops growing where a larger window disagrees beyond the smaller
+ones' noise, but a pit a few windows wide can hide inside that noise; on the default
+preset's planted pits (radius 11-33 px) the 63 px window left too shallow depths outside
+their +- (``docs/profile.md``)."""
 
 ZONE_MM = 5.0
 """Width of the distance zones of the board test (mm): the paper's Fig. 4 uses zones of

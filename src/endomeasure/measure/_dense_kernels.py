@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -103,6 +103,29 @@ def _curve_point(field, seen, gx, gy, k):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _spline_at(coeffs, lu, lv):
+    """Spline value and gradient (d/du, d/dv) at box coordinates (lu, lv)."""
+    box_h, box_w = coeffs.shape
+    bu = int(math.floor(lu))
+    bv = int(math.floor(lv))
+    wu, dwu = _bspline(lu - bu)
+    wv, dwv = _bspline(lv - bv)
+    val = gu = gv = 0.0
+    for a in range(4):
+        row = min(max(bv - 1 + a, 0), box_h - 1)
+        along = slope = 0.0
+        for b in range(4):
+            col = min(max(bu - 1 + b, 0), box_w - 1)
+            cf = coeffs[row, col]
+            along += cf * wu[b]
+            slope += cf * dwu[b]
+        val += along * wv[a]
+        gv += along * dwv[a]
+        gu += slope * wv[a]
+    return val, gu, gv
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
 def curve_samples(field, seen, mx, my, w0, dw, w, coeffs, origin_u, origin_v, umin, umax,
                   vmax):  # fmt: skip
     """The other half along each pixel's curve at inverse depth ``w`` (h, w).
@@ -110,43 +133,31 @@ def curve_samples(field, seen, mx, my, w0, dw, w, coeffs, origin_u, origin_v, um
     Returns the curve point ``q`` (h, w, 2), its derivative ``dq/dw`` (h, w, 2), the
     spline value there and the image gradient (h, w, 2) (d/du, d/dv); NaN where the
     curve point is not in the table or outside ``umin <= u <= umax, 0 <= v <= vmax``.
+    Rows run in parallel.
     """
     h, wd = w.shape
     q = np.full((h, wd, 2), np.nan)
     dq = np.full((h, wd, 2), np.nan)
     value = np.full((h, wd), np.nan)
     grad = np.full((h, wd, 2), np.nan)
-    box_h, box_w = coeffs.shape
-    for i in range(h):
+    for i in prange(h):
         for j in range(wd):
             k = (w[i, j] - w0) / dw
             if not math.isfinite(k):
                 continue
-            qu, qv, du, dv = _curve_point(field, seen, mx[j], my[i], k)
+            point = _curve_point(field, seen, mx[j], my[i], k)
+            qu = point[0]
+            qv = point[1]
             if not (math.isfinite(qu) and math.isfinite(qv)):
                 continue
-            q[i, j, 0], q[i, j, 1] = qu, qv
-            dq[i, j, 0], dq[i, j, 1] = du / dw, dv / dw
+            q[i, j, 0] = qu
+            q[i, j, 1] = qv
+            dq[i, j, 0] = point[2] / dw
+            dq[i, j, 1] = point[3] / dw
             if not (umin <= qu <= umax and 0.0 <= qv <= vmax):
                 continue
-            lu = qu - origin_u
-            lv = qv - origin_v
-            bu = int(math.floor(lu))
-            bv = int(math.floor(lv))
-            wu, dwu = _bspline(lu - bu)
-            wv, dwv = _bspline(lv - bv)
-            val = gu = gv = 0.0
-            for a in range(4):
-                row = min(max(bv - 1 + a, 0), box_h - 1)
-                along = slope = 0.0
-                for b in range(4):
-                    col = min(max(bu - 1 + b, 0), box_w - 1)
-                    cf = coeffs[row, col]
-                    along += cf * wu[b]
-                    slope += cf * dwu[b]
-                val += along * wv[a]
-                gv += along * dwv[a]
-                gu += slope * wv[a]
-            value[i, j] = val
-            grad[i, j, 0], grad[i, j, 1] = gu, gv
+            sample = _spline_at(coeffs, qu - origin_u, qv - origin_v)
+            value[i, j] = sample[0]
+            grad[i, j, 0] = sample[1]
+            grad[i, j, 1] = sample[2]
     return q, dq, value, grad

@@ -229,7 +229,9 @@ def measure_profile(
         _check_pixels(left, Half.LEFT, model, "left")
         if refs is not None:
             _check_pixels(refs, Half.LEFT, model, "--ref")
-        settings = DenseSettings(depth_range_mm=search_depths(cm))
+        settings = DenseSettings(
+            depth_range_mm=search_depths(cm), window_range_px=defaults.PROFILE_WINDOW_RANGE_PX
+        )
         window = settings.window_px
         if kind == "profile":
             ends = left[None]
