@@ -160,7 +160,8 @@ def _candidate(w, sigma, status=None):
     w, sigma = np.asarray(w, float), np.asarray(sigma, float)
     status = np.zeros(w.shape, np.uint8) if status is None else np.asarray(status, np.uint8)
     nan = np.full(w.shape, np.nan)
-    return _Candidate(w, sigma, np.full((*w.shape, 2), np.nan), nan, nan, status)
+    return _Candidate(w, sigma, np.full((*w.shape, 2), np.nan), nan, nan, status,
+                      np.zeros(w.shape, np.uint16))  # fmt: skip
 
 
 def test_window_choice_grows_while_the_intervals_intersect():
@@ -191,3 +192,17 @@ def test_start_surface_reproduces_a_quadratic_through_holes(side):
     holes[::7, ::5] = np.nan
     fitted = _smooth_base(holes, smooth_px=1, side=side)
     assert np.max(np.abs(fitted - w)) < 1e-9
+
+
+def test_a_chosen_window_that_departs_from_the_smaller_ones_carries_the_departure():
+    """Its sigma grows by the departure beyond the smaller window's noise (a smoothed
+    pit); where the two agree within that noise it keeps its own sigma."""
+    from endomeasure.measure.dense import _choose_window, _picked
+
+    small = _candidate([1.0, 1.0], [1.0, 1.0])
+    large = _candidate([2.5, 1.2], [0.1, 0.1])
+    candidates = {15: small, 31: large}
+    chosen = _choose_window(candidates)
+    assert chosen.tolist() == [1, 1]
+    picked = _picked(candidates, chosen)
+    assert np.allclose(picked.sigma_w, [np.sqrt(0.1**2 + 1.5**2 - 1.0), 0.1])

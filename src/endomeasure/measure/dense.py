@@ -551,8 +551,9 @@ def _catmull_rom_matrix(n: int, nodes: int, step: int) -> np.ndarray:
 
 
 class _Candidate(NamedTuple):
-    """One window size's match per pixel: inverse depth, its sigma, the right pixel,
-    the noise-corrected score, the precision along the curve (px) and the status."""
+    """A match per pixel: inverse depth, its sigma, the right pixel, the noise-corrected
+    score, the precision along the curve (px), the status and the window's side (px; 0:
+    none matched, ``status`` then says why the largest size failed)."""
 
     w: np.ndarray
     sigma_w: np.ndarray
@@ -560,6 +561,7 @@ class _Candidate(NamedTuple):
     score: np.ndarray
     precision: np.ndarray
     status: np.ndarray
+    window: np.ndarray
 
 
 def _refine(table: _CurveTable, bases: dict, refs: dict, right: _RightHalf, noise,
@@ -595,7 +597,8 @@ def _refine(table: _CurveTable, bases: dict, refs: dict, right: _RightHalf, nois
         imprecise = ~(precision <= MAX_PRECISION_PX)
         status[(status == DenseStatus.OK) & imprecise] = DenseStatus.UNTEXTURED
         status[(status == DenseStatus.OK) & ~(score >= MIN_SCORE)] = DenseStatus.LOW_SCORE
-        out[size] = _Candidate(w, sigma_w, q_r, score, precision, status)
+        out[size] = _Candidate(w, sigma_w, q_r, score, precision, status,
+                               np.full(w.shape, size, dtype=np.uint16))  # fmt: skip
     return out
 
 
@@ -757,20 +760,7 @@ its shape error inside the window adds to the match's error, and a fit over abou
 ``_START_SPAN ** 2`` windows' depths keeps it below their own scatter."""
 
 
-class _Match(NamedTuple):
-    """The chosen window's match per pixel (:class:`_Candidate`'s fields) and its side
-    (0: none matched; ``status`` then says why the largest size failed)."""
-
-    w: np.ndarray
-    sigma_w: np.ndarray
-    right: np.ndarray
-    score: np.ndarray
-    precision: np.ndarray
-    status: np.ndarray
-    window: np.ndarray
-
-
-def _picked(candidates: dict, chosen: np.ndarray) -> _Match:
+def _picked(candidates: dict, chosen: np.ndarray) -> _Candidate:
     """Each pixel's fields from its chosen size (``chosen``: index into the sorted sizes).
 
     The chosen window agrees with the smaller ones only within their intervals, so its
@@ -799,13 +789,13 @@ def _picked(candidates: dict, chosen: np.ndarray) -> _Match:
     matched = chosen >= 0
     # no size matched: the largest size's reason (it has the most evidence)
     status = np.where(matched, DenseStatus.OK, candidates[sizes[-1]].status).astype(np.uint8)
-    window = np.where(matched, np.asarray(sizes)[pick], 0)
-    return _Match(w, np.sqrt(sigma_w**2 + bias2), gather("right"), gather("score"),
-                  gather("precision"), status, window)  # fmt: skip
+    window = np.where(matched, gather("window"), 0)
+    return _Candidate(w, np.sqrt(sigma_w**2 + bias2), gather("right"), gather("score"),
+                      gather("precision"), status, window)  # fmt: skip
 
 
 def _adaptive_refinement(table, coarse_w, refs: dict, right, noise, levels,
-                         settings: DenseSettings) -> _Match:  # fmt: skip
+                         settings: DenseSettings) -> _Candidate:  # fmt: skip
     """``settings.passes`` refinement passes, every window size each, the size by ICI.
 
     The first pass starts from the sweep's depths, each later one from the previous
