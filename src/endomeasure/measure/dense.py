@@ -775,7 +775,7 @@ def _picked(candidates: dict, chosen: np.ndarray) -> _Candidate:
 
     def gather(field):
         stack = np.stack([getattr(candidates[size], field) for size in sizes])
-        index = pick[None, ..., None] if stack.ndim == 4 else pick[None]
+        index = pick[None, ..., None] if stack.ndim == pick.ndim + 2 else pick[None]
         return np.take_along_axis(stack, index, axis=0)[0]
 
     w, sigma_w = gather("w"), gather("sigma_w")
