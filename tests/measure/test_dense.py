@@ -134,6 +134,7 @@ def test_curve_table_points_and_samples_match_exact_projections_and_the_spline()
     u0, v0, u1, v1 = REGION
     w = rng.uniform(levels[1], levels[-2], size=(v1 - v0, u1 - u0))
     along = right.along(table, w)
+    assert np.array_equal(right.values_along(table, w), along.values, equal_nan=True)
     uu, vv = np.meshgrid(np.arange(u0, u1, dtype=float), np.arange(v0, v1, dtype=float))
     rays = model.rays(np.stack([uu, vv], -1), Half.LEFT)
     exact = model.project(dense._ray_points(rays, w), Half.RIGHT).pixels

@@ -161,3 +161,23 @@ def curve_samples(field, seen, mx, my, w0, dw, w, coeffs, origin_u, origin_v, um
             grad[i, j, 0] = sample[1]
             grad[i, j, 1] = sample[2]
     return q, dq, value, grad
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def curve_values(field, seen, mx, my, w0, dw, w, coeffs, origin_u, origin_v, umin, umax,
+                 vmax):  # fmt: skip
+    """The spline's values of :func:`curve_samples` alone (h, w): what a correlation at
+    a candidate depth needs, without the curve's derivative and the image gradient."""
+    h, wd = w.shape
+    value = np.full((h, wd), np.nan)
+    for i in prange(h):
+        for j in range(wd):
+            k = (w[i, j] - w0) / dw
+            if not math.isfinite(k):
+                continue
+            point = _curve_point(field, seen, mx[j], my[i], k)
+            qu = point[0]
+            qv = point[1]
+            if umin <= qu <= umax and 0.0 <= qv <= vmax:  # False for NaN
+                value[i, j] = _spline_at(coeffs, qu - origin_u, qv - origin_v)[0]
+    return value

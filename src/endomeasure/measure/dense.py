@@ -579,7 +579,7 @@ def _refine(table: _CurveTable, bases: dict, refs: dict, right: _RightHalf, nois
     out = {}
     for size, ref in refs.items():
         base = bases[size]
-        fine = np.stack([_zncc(ref, right.along(table, base + dj).values, size)[0]
+        fine = np.stack([_zncc(ref, right.values_along(table, base + dj), size)[0]
                          for dj in offsets])  # fmt: skip
         best = np.argmax(np.nan_to_num(fine, nan=-2.0), axis=0)
         rows, cols = np.indices(best.shape)
@@ -841,12 +841,19 @@ class _RightHalf(NamedTuple):
         """The right half at each pixel's curve point of inverse depth ``w`` (h, w)."""
         from endomeasure.measure._dense_kernels import curve_samples
 
-        return _Along(*curve_samples(
-            table.field, table.seen, table.mx, table.my, table.w0, table.dw,
-            np.ascontiguousarray(w), self.coeffs, float(self.origin[0]),
-            float(self.origin[1]), float(self.split), float(self.width - 1),
-            float(self.height - 1),
-        ))  # fmt: skip
+        return _Along(*curve_samples(*self._kernel_args(table, w)))
+
+    def values_along(self, table: _CurveTable, w: np.ndarray) -> np.ndarray:
+        """:meth:`along`'s values alone (h, w)."""
+        from endomeasure.measure._dense_kernels import curve_values
+
+        return curve_values(*self._kernel_args(table, w))
+
+    def _kernel_args(self, table: _CurveTable, w: np.ndarray) -> tuple:
+        return (table.field, table.seen, table.mx, table.my, table.w0, table.dw,
+                np.ascontiguousarray(w, dtype=np.float64), self.coeffs, float(self.origin[0]),
+                float(self.origin[1]), float(self.split), float(self.width - 1),
+                float(self.height - 1))  # fmt: skip
 
 
 def _match_at(table: _CurveTable, w, ref, right: _RightHalf, noise, window: int):
