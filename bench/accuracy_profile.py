@@ -344,8 +344,10 @@ def main() -> int:
         "",
         "A dense depth is that of its pixel's whole correlation window (docs/surface.md), "
         "so a pit about a window across comes out smoothed (compare measured / true with "
-        "diameter / window); the sigma is the match's alone and does not contain "
-        "that smoothing.",
+        "diameter / window); the sigma holds the chosen window's departure from the "
+        "smaller windows beyond their noise, an estimate of that smoothing "
+        f"(windows {defaults.PROFILE_WINDOW_RANGE_PX[0]}-{defaults.PROFILE_WINDOW_RANGE_PX[1]} "
+        "px, `defaults.PROFILE_WINDOW_RANGE_PX`).",
     ])  # fmt: skip
     return report.finish({"profile": body})
 
