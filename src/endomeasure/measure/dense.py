@@ -122,11 +122,13 @@ class DenseSettings:
         Refinement passes: each starts from the previous one's depths (the first from
         the sweep's), smoothed on each window's scale (:func:`_smooth_base`).
     grid_px : int
-        Spacing of the left pixels where the sweep's plane maps are computed exactly.
+        Spacing of the reference pixels whose curves are projected exactly (the table
+        the sweep and the refinement interpolate).
     consistency_levels : float
         Largest difference of the left and right coarse depths, in coarse levels.
     smooth_px : int
-        Side of the median that smooths the coarse depth before the refinement (odd).
+        Side of the median that removes outliers from a pass's depths before its start
+        surface is fitted (odd).
     """
 
     window_px: int = defaults.DENSE_WINDOW_PX
