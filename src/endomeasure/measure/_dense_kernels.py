@@ -65,6 +65,8 @@ def _curve_point(field, seen, gx, gy, k):
     missing). NaN unless the four nodes around the point are ``seen`` on both levels
     around ``k``."""
     n_levels, gh, gw = field.shape[0], field.shape[1], field.shape[2]
+    if not math.isfinite(k):
+        return math.nan, math.nan, math.nan, math.nan
     ix = min(max(int(math.floor(gx)), 1), gw - 3)
     iy = min(max(int(math.floor(gy)), 1), gh - 3)
     ik = int(math.floor(k))
@@ -142,24 +144,16 @@ def curve_samples(field, seen, mx, my, w0, dw, w, coeffs, origin_u, origin_v, um
     grad = np.full((h, wd, 2), np.nan)
     for i in prange(h):
         for j in range(wd):
-            k = (w[i, j] - w0) / dw
-            if not math.isfinite(k):
-                continue
-            point = _curve_point(field, seen, mx[j], my[i], k)
-            qu = point[0]
-            qv = point[1]
-            if not (math.isfinite(qu) and math.isfinite(qv)):
-                continue
-            q[i, j, 0] = qu
-            q[i, j, 1] = qv
+            point = _curve_point(field, seen, mx[j], my[i], (w[i, j] - w0) / dw)
+            q[i, j, 0] = point[0]
+            q[i, j, 1] = point[1]
             dq[i, j, 0] = point[2] / dw
             dq[i, j, 1] = point[3] / dw
-            if not (umin <= qu <= umax and 0.0 <= qv <= vmax):
-                continue
-            sample = _spline_at(coeffs, qu - origin_u, qv - origin_v)
-            value[i, j] = sample[0]
-            grad[i, j, 0] = sample[1]
-            grad[i, j, 1] = sample[2]
+            if umin <= point[0] <= umax and 0.0 <= point[1] <= vmax:  # False for NaN
+                sample = _spline_at(coeffs, point[0] - origin_u, point[1] - origin_v)
+                value[i, j] = sample[0]
+                grad[i, j, 0] = sample[1]
+                grad[i, j, 1] = sample[2]
     return q, dq, value, grad
 
 
@@ -172,12 +166,7 @@ def curve_values(field, seen, mx, my, w0, dw, w, coeffs, origin_u, origin_v, umi
     value = np.full((h, wd), np.nan)
     for i in prange(h):
         for j in range(wd):
-            k = (w[i, j] - w0) / dw
-            if not math.isfinite(k):
-                continue
-            point = _curve_point(field, seen, mx[j], my[i], k)
-            qu = point[0]
-            qv = point[1]
-            if umin <= qu <= umax and 0.0 <= qv <= vmax:  # False for NaN
-                value[i, j] = _spline_at(coeffs, qu - origin_u, qv - origin_v)[0]
+            point = _curve_point(field, seen, mx[j], my[i], (w[i, j] - w0) / dw)
+            if umin <= point[0] <= umax and 0.0 <= point[1] <= vmax:  # False for NaN
+                value[i, j] = _spline_at(coeffs, point[0] - origin_u, point[1] - origin_v)[0]
     return value
