@@ -590,12 +590,15 @@ def _refine(table: _CurveTable, bases: dict, refs: dict, right: _RightHalf, nois
         y_plus = fine[np.minimum(best + 1, offsets.size - 1), rows, cols]
         w = base + np.interp(best + _parabola(y_minus, y0, y_plus), np.arange(offsets.size),
                              offsets)  # fmt: skip
+        # a window the right half does not see whole at the peak or beside it has no
+        # peak to place: not seen (the overlap's edge); a peak at an end of the searched
+        # stretch may lie beyond it
+        unseen = ~(np.isfinite(y0) & np.isfinite(y_minus) & np.isfinite(y_plus))
         end = (best == 0) | (best == offsets.size - 1)
-        end |= ~(np.isfinite(y_minus) & np.isfinite(y_plus))
         q_r, score, precision, sigma_w = _match_at(table, w, ref, right, noise, size)
         status = np.full(w.shape, DenseStatus.OK, dtype=np.uint8)
-        status[end] = DenseStatus.AT_RANGE_END
-        status[(status == DenseStatus.OK) & ~np.isfinite(score)] = DenseStatus.NOT_SEEN
+        status[unseen | ~np.isfinite(score)] = DenseStatus.NOT_SEEN
+        status[(status == DenseStatus.OK) & end] = DenseStatus.AT_RANGE_END
         imprecise = ~(precision <= MAX_PRECISION_PX)
         status[(status == DenseStatus.OK) & imprecise] = DenseStatus.UNTEXTURED
         status[(status == DenseStatus.OK) & ~(score >= MIN_SCORE)] = DenseStatus.LOW_SCORE
