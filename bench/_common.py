@@ -103,6 +103,12 @@ class Check:
         return f"{verdict}: {self.target}; this run {self.value:.4g}{self.target.unit}"
 
 
+def window_range(text: str) -> tuple[int, int]:
+    """The dense refinement's window sides ``LO,HI`` (px) of a ``--window-range`` option."""
+    lo, _, hi = text.partition(",")
+    return int(lo), int(hi or lo)
+
+
 def parse_seeds(text: str) -> list[int]:
     """Design seeds from ``1-40``, ``1,5`` or ``1-3,7`` (ranges inclusive)."""
     out: list[int] = []

@@ -28,7 +28,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "src"))
 
-from _common import ACCURACY, Report, Target, parse_seeds, script_parser  # noqa: E402
+from _common import (  # noqa: E402
+    ACCURACY,
+    Report,
+    Target,
+    parse_seeds,
+    script_parser,
+    window_range,
+)
 
 COVERAGE_TARGET = Target("pixels both halves see with a depth", ">=", 85.0, " %", "issue 20")
 ERROR_TARGET = Target("median |z error| / z", "<=", 0.2, " %", "issue 20")
@@ -202,13 +209,17 @@ def main() -> int:
     parser.add_argument("--designs", type=Path, default=None, help="random designs' WORK folder")
     parser.add_argument("--design-seeds", default="1-12", help="e.g. 1-12 or 1,5")
     parser.add_argument("--images", type=int, default=1, help="scene images per design")
+    parser.add_argument("--window-range", type=window_range, default=None,
+                        help="refinement windows LO,HI px (default: surface's)")  # fmt: skip
     args = parser.parse_args()
     from endomeasure import defaults
     from endomeasure.measure.dense import DenseSettings
     from endomeasure.pipeline import search_depths
 
+    windows = args.window_range or defaults.DENSE_WINDOW_RANGE_PX
+
     def settings_for(cm):  # as `endomeasure surface` does
-        return DenseSettings(depth_range_mm=search_depths(cm))
+        return DenseSettings(depth_range_mm=search_depths(cm), window_range_px=windows)
 
     frames = default_frames(args.session, settings_for)
     design = []
@@ -238,6 +249,8 @@ def main() -> int:
     if args.designs is not None:
         command += f" --designs {args.designs} --design-seeds {args.design_seeds}"
         command += f" --images {args.images}"
+    if args.window_range is not None:
+        command += f" --window-range {windows[0]},{windows[1]}"
     body = "\n".join([
         "## Dense surfaces on the scene images",
         "",
@@ -245,12 +258,12 @@ def main() -> int:
         "design: its own calibration from its own images). Truth: the simulator's per-pixel "
         "depth through the truth optics; counted: left pixels whose true surface point the "
         f"right half sees. Sweep window {defaults.DENSE_WINDOW_PX} px, refinement windows "
-        f"{defaults.DENSE_WINDOW_RANGE_PX[0]}-{defaults.DENSE_WINDOW_RANGE_PX[1]} px (the "
-        "defaults). *Matching alone*: the depth against the calibrated model's own depth of "
-        "the true match (the truth optics' right pixel of the true point, triangulated with "
-        "the model), against the match's sigma without the calibration's share; the "
-        "*calibration's depth bias* is that depth against the truth: what no matching "
-        "can remove, and what the calibration's covariance and misfit must hold.",
+        f"{windows[0]}-{windows[1]} px. *Matching alone*: the depth against the calibrated "
+        "model's own depth of the true match (the truth optics' right pixel of the true "
+        "point, triangulated with the model), against the match's sigma without the "
+        "calibration's share; the *calibration's depth bias* is that depth against the "
+        "truth: what no matching can remove, and what the calibration's covariance and "
+        "misfit must hold.",
         "",
         "| images | frames | depth for % | median abs z error % of z | inside 2 sigma % | "
         "matching alone: median % of z | matching alone: inside its 2 sigma % |",

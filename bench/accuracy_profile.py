@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "src"))
 
-from _common import ACCURACY, Report, Target, script_parser  # noqa: E402
+from _common import ACCURACY, Report, Target, script_parser, window_range  # noqa: E402
 
 EXTREME_TARGET = Target(
     "profile extremes within 2 sigma of the true extreme", ">=", 90.0, " %", "issue 20"
@@ -229,6 +229,8 @@ def main() -> int:
     parser.add_argument("--session", type=Path, default=ROOT / "out" / "demo" / "demo.h5")
     parser.add_argument("--paths", type=int, default=8, help="random paths per scene image")
     parser.add_argument("--pits", type=int, default=3, help="planted pits per scene image")
+    parser.add_argument("--window-range", type=window_range, default=None,
+                        help="refinement windows LO,HI px (default: profiles')")  # fmt: skip
     args = parser.parse_args()
     import shutil
     import tempfile
@@ -251,8 +253,9 @@ def main() -> int:
             cm = load_calibrated_model(reader, "raytrace", copy)
             images = {n: reader.image(n) for n in sorted(shots) if n in reader.image_names()}
     images = {n: im[..., :3].mean(axis=2) if im.ndim == 3 else im for n, im in images.items()}
+    windows = args.window_range or defaults.PROFILE_WINDOW_RANGE_PX
     settings = DenseSettings(  # as `measure --kind profile`
-        depth_range_mm=search_depths(cm), window_range_px=defaults.PROFILE_WINDOW_RANGE_PX
+        depth_range_mm=search_depths(cm), window_range_px=windows
     )
     rng = np.random.default_rng(args.seed)
     rows, extreme_ok, own_ok, refused, seconds = [], [], [], [], []
@@ -290,6 +293,8 @@ def main() -> int:
     pit_check = report.check(PIT_TARGET, pit_share)
     command = (f"{Path(sys.executable).name} bench/accuracy_profile.py --session {args.session} "
                f"--paths {args.paths} --pits {args.pits} --seed {args.seed}")  # fmt: skip
+    if args.window_range is not None:
+        command += f" --window-range {windows[0]},{windows[1]}"
     body = "\n".join([
         "## Depth profiles across the cylinder",
         "",
@@ -346,8 +351,9 @@ def main() -> int:
         "so a pit about a window across comes out smoothed (compare measured / true with "
         "diameter / window); the sigma holds the chosen window's departure from the "
         "smaller windows beyond their noise, an estimate of that smoothing "
-        f"(windows {defaults.PROFILE_WINDOW_RANGE_PX[0]}-{defaults.PROFILE_WINDOW_RANGE_PX[1]} "
-        "px, `defaults.PROFILE_WINDOW_RANGE_PX`).",
+        f"(windows {windows[0]}-{windows[1]} px; `measure --kind profile` uses "
+        f"`defaults.PROFILE_WINDOW_RANGE_PX`, {defaults.PROFILE_WINDOW_RANGE_PX[0]}-"
+        f"{defaults.PROFILE_WINDOW_RANGE_PX[1]} px).",
     ])  # fmt: skip
     return report.finish({"profile": body})
 

@@ -55,15 +55,19 @@ noise, summed over the window (sigma ~ 1 / side), while the depth is an average 
 window. Each pixel therefore gets the largest window that agrees with all smaller ones
 (the intersection of confidence intervals): large where the surface is smooth on that
 scale, small at a pit or an edge. 15 px still holds enough samples for a correlation
-about a plane; 127 px is about a third of a small sensor's half."""
+about a plane. Up to 127 px the largest window's depths carry more error than their
+sigma (its start surface's shape error grows with it): compare
+``bench/accuracy_dense.py --no-write --window-range 15,127`` with the default's section in
+``docs/accuracy.md``; the random designs check the choice (``--designs``)."""
 
 PROFILE_WINDOW_RANGE_PX = (15, 31)
 """The refinement's windows for depth profiles (px, odd): a profile is read at its
 extreme, the bottom of a pit or dent, where a window wider than the feature averages it
 away. The window choice stops growing where a larger window disagrees beyond the smaller
-ones' noise, but a pit a few windows wide can hide inside that noise; on the default
-preset's planted pits (radius 11-33 px) the 63 px window left too shallow depths outside
-their +- (``docs/profile.md``)."""
+ones' noise, but a pit a few windows wide can hide inside that noise: compare
+``bench/accuracy_profile.py --no-write --window-range 15,63`` with the profile section of
+``docs/accuracy.md`` (the default preset's planted pits, radius 11-33 px; not yet
+checked on random designs)."""
 
 ZONE_MM = 5.0
 """Width of the distance zones of the board test (mm): the paper's Fig. 4 uses zones of

@@ -27,9 +27,10 @@ import numpy as np
 from numba import njit, prange
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _catmull_rom(t):
-    """Catmull-Rom weights of the taps -1..2 at fraction ``t`` and their d/dt."""
+def catmull_rom_weights(t):
+    """Catmull-Rom weights of the taps -1..2 at fraction ``t`` and their d/dt (scalars or
+    arrays alike: the kernels compile it, :func:`endomeasure.measure.dense._smooth_base`
+    calls it on arrays). It reproduces quadratics exactly."""
     t2 = t * t
     t3 = t2 * t
     w = (
@@ -45,6 +46,11 @@ def _catmull_rom(t):
         0.5 * (3.0 * t2 - 2.0 * t),
     )
     return w, d
+
+
+_catmull_rom = njit(cache=True, nogil=True, error_model="numpy", inline="always")(
+    catmull_rom_weights
+)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")

@@ -541,14 +541,14 @@ def _smooth_base(w: np.ndarray, smooth_px: int, side: int) -> np.ndarray:
 def _catmull_rom_matrix(n: int, nodes: int, step: int) -> np.ndarray:
     """(n, nodes) weights interpolating values at nodes ``step * (k - 1)`` to the pixels
     ``0..n-1`` (Catmull-Rom; the outermost nodes repeat)."""
+    from endomeasure.measure._dense_kernels import catmull_rom_weights
+
     t = (np.arange(n) + step) / step
     base = np.floor(t).astype(np.intp)
-    f = t - base
-    weights = np.stack([0.5 * (-f**3 + 2 * f**2 - f), 0.5 * (3 * f**3 - 5 * f**2 + 2),
-                        0.5 * (-3 * f**3 + 4 * f**2 + f), 0.5 * (f**3 - f**2)], -1)  # fmt: skip
+    weights = catmull_rom_weights(t - base)[0]
     out = np.zeros((n, nodes))
     for tap in range(4):
-        np.add.at(out, (np.arange(n), np.clip(base - 1 + tap, 0, nodes - 1)), weights[:, tap])
+        np.add.at(out, (np.arange(n), np.clip(base - 1 + tap, 0, nodes - 1)), weights[tap])
     return out
 
 
@@ -710,10 +710,9 @@ def dense_surface(
     match = _adaptive_refinement(table, coarse.w, refs, right_half, noise, levels, settings)
     w, sigma_w, q_r, status = match.w, match.sigma_w, match.right, match.status
     _check_consistency(model, grey, status, q_r, w, levels, settings)
-    uu, vv = np.meshgrid(
-        np.arange(fu0, fu1, dtype=np.float64), np.arange(fv0, fv1, dtype=np.float64)
-    )
-    rays = model.rays(np.stack([uu, vv], -1), Half.LEFT)
+    region_px = np.stack(np.meshgrid(np.arange(u0, u1, dtype=np.float64),
+                                     np.arange(v0, v1, dtype=np.float64)), -1)  # fmt: skip
+    rays = model.rays(region_px, Half.LEFT)
 
     # ----- crop to the region, sigma of z by the unscented transform of w
     inner = (slice(v0 - fv0, v1 - fv0), slice(u0 - fu0, u1 - fu0))
@@ -729,11 +728,9 @@ def dense_surface(
         depth[ok] = 1.0 / w_in[ok]
         sigma_depth[ok] = prop.std
         if param_cov is not None or misfit_cov is not None:
-            ql = np.stack(np.meshgrid(np.arange(u0, u1, dtype=float),
-                                      np.arange(v0, v1, dtype=float)), -1)  # fmt: skip
-            cal = _calibration_sigma(model, param_cov, misfit_cov, ql[ok], q_r[inner][ok])
+            cal = _calibration_sigma(model, param_cov, misfit_cov, region_px[ok], q_r[inner][ok])
             sigma_depth[ok] = np.hypot(sigma_depth[ok], cal)
-    o, d = rays.origins[inner], rays.directions[inner]
+    o, d = rays.origins, rays.directions
     with np.errstate(invalid="ignore"):
         t = (depth - o[..., 2]) / d[..., 2]
         points = o + t[..., None] * d
@@ -762,7 +759,9 @@ def dense_surface(
 _START_SPAN = 4
 """A window's start surface is fitted over this many window sides (:func:`_smooth_base`):
 its shape error inside the window adds to the match's error, and a fit over about
-``_START_SPAN ** 2`` windows' depths keeps it below their own scatter."""
+``_START_SPAN ** 2`` windows' depths averages their scatter down. Chosen with
+:attr:`DenseSettings.passes` in development on the default preset; the random designs
+check both: the "matching alone" columns of ``bench/accuracy_dense.py --designs``."""
 
 
 def _picked(candidates: dict, chosen: np.ndarray) -> _Candidate:
