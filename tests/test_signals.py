@@ -221,6 +221,33 @@ def test_an_interrupt_python_had_to_drop_is_raised_again():
             pytest.fail("the interrupt was lost in the destructor")
 
 
+def test_an_interrupt_is_not_raised_inside_h5py_but_right_after_it_returns():
+    # a stand-in for h5py's Python code that HDF5 calls back (its module name is what counts)
+    library = {"__name__": "h5py._conv_stand_in"}
+    exec(
+        textwrap.dedent(
+            """
+            def convert(signal_now):
+                signal_now()
+                total = 0
+                for i in range(200_000):  # the handler runs between these bytecodes
+                    total += i
+                return total
+            """
+        ),
+        library,
+    )
+    with interrupts.handling():
+        interrupts.arm()
+        returned = []
+        with pytest.raises(interrupts.Interrupted) as caught:
+            returned.append(library["convert"](lambda: os.kill(os.getpid(), signal.SIGTERM)))
+            time.sleep(2.0)  # raised again within milliseconds
+            pytest.fail("the interrupt held back in h5py was lost")
+        assert returned == [sum(range(200_000))]  # h5py's code ran to its end
+        assert caught.value.signum == signal.SIGTERM
+
+
 def test_only_the_first_signal_raises_and_a_decided_outcome_ignores_them():
     with interrupts.handling():
         interrupts.arm()

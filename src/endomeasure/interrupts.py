@@ -10,7 +10,7 @@ its end and the user sees one line. Every signal is remembered (:func:`received`
 interrupt that a library turned into an ordinary error, or swallowed, is still reported
 as the interrupt it was; one that Python itself had to drop (raised in a destructor or
 a weakref callback, where it would print "Exception ignored") is raised again a moment
-later.
+later, and so is one that comes while h5py is in control (see :data:`_UNINTERRUPTIBLE`).
 
 :func:`deferred` holds both signals back around a step that must not be cut (the
 rename that replaces a session); :func:`worker_initializer` makes a pool worker ignore
@@ -66,8 +66,15 @@ class Interrupted(KeyboardInterrupt):
 
 
 _RERAISE_AFTER_S = 0.002
-"""Delay before an interrupt that was swallowed is raised again (after the code that
-swallowed it has returned)."""
+"""Delay before an interrupt that was swallowed or held back is raised again (after the
+code that swallowed it, or held it back, has returned)."""
+
+_UNINTERRUPTIBLE = ("h5py",)
+"""Packages an interrupt is never raised inside; it is raised a moment after they return.
+h5py runs Python code inside HDF5's C calls (type conversion, iteration callbacks): an
+exception raised there leaves HDF5 in the middle of a call, and h5py prints to stdout
+on the way out ("Failed to find converter ..."), which a pipeline reading our stdout
+would take as output."""
 
 
 class _State:
@@ -90,7 +97,26 @@ def _raise_first(signum: int, frame: object) -> None:
     if _STATE.deferring:
         _STATE.pending = True
         return
+    if _inside_uninterruptible(frame):
+        _raise_again_soon()
+        return
     raise Interrupted(_STATE.received)
+
+
+def _inside_uninterruptible(frame) -> bool:
+    """Whether a frame of one of the :data:`_UNINTERRUPTIBLE` packages is on the stack."""
+    while frame is not None:
+        module = frame.f_globals.get("__name__") or ""
+        if module.partition(".")[0] in _UNINTERRUPTIBLE:
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _raise_again_soon() -> None:
+    timer = threading.Timer(_RERAISE_AFTER_S, _trip_again)
+    timer.daemon = True
+    timer.start()
 
 
 def _unraisable(hook_args) -> None:
@@ -102,9 +128,7 @@ def _unraisable(hook_args) -> None:
         # starting a thread waits on a lock, and a raise inside this hook would be
         # dropped (and printed) in its turn
         _STATE.in_hook = True
-        timer = threading.Timer(_RERAISE_AFTER_S, _trip_again)
-        timer.daemon = True
-        timer.start()
+        _raise_again_soon()
         _STATE.in_hook = False  # no call follows before the return: no handler runs here
         return
     _PREVIOUS_UNRAISABLEHOOK(hook_args)
