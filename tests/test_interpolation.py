@@ -74,3 +74,50 @@ def test_noise_gain_against_scipy():
         expected.append(np.sum(np.square(values)))
     np.testing.assert_allclose(noise_gain(phases), expected, atol=GAIN_TOLERANCE)
     assert noise_gain(np.array(0.0)) == pytest.approx(1.0, abs=GAIN_TOLERANCE)
+
+
+@pytest.mark.parametrize("sigma_px", [0.0, 1.0])
+def test_noise_transfer_of_a_prefilter_against_scipy(sigma_px):
+    """After a prefilter ``k`` the interpolant of unit white noise has, per axis, the
+    variance ``sum (w * k)^2`` and its derivative ``sum (w' * k)^2``: scipy's convolution,
+    then scipy's cubic spline of each impulse (its value and derivative at 20 + t)."""
+    from scipy.interpolate import make_interp_spline
+    from scipy.ndimage import convolve1d
+
+    from endomeasure.interpolation import gaussian_taps, noise_transfer
+
+    size = 41
+    taps = gaussian_taps(sigma_px)
+    transfer = noise_transfer(taps)
+    phases = (np.arange(64) + 0.5) / 64
+    value_var, slope_var = [], []
+    for t in phases:
+        values, slopes = [], []
+        for j in range(size):
+            impulse = np.zeros(size)
+            impulse[j] = 1.0
+            spline = make_interp_spline(np.arange(size), convolve1d(impulse, taps, mode="constant"))
+            values.append(spline(20.0 + t))
+            slopes.append(spline.derivative()(20.0 + t))
+        value_var.append(np.sum(np.square(values)))
+        slope_var.append(np.sum(np.square(slopes)))
+    np.testing.assert_allclose(transfer.gain(phases), value_var, rtol=1e-6)
+    # along a unit direction in 2-D, averaged over directions and phases
+    assert transfer.derivative == pytest.approx(np.mean(slope_var) * np.mean(value_var), rel=2e-3)
+
+
+def test_the_correlated_share_of_a_sinusoid_is_the_prefilters_power_at_its_frequency():
+    """For ``g = cos(omega u)`` the prefiltered noise keeps ``|K(omega)|^2`` of the white
+    noise's variance of ``sum g n``: the taps' transform, summed directly."""
+    from endomeasure.interpolation import gaussian_taps, noise_transfer
+
+    taps = np.asarray(gaussian_taps(1.0))
+    transfer = noise_transfer(tuple(taps))
+    m = np.arange(taps.size) - taps.size // 2
+    for omega in (0.3, 0.8, 1.5):
+        g = np.tile(np.cos(omega * np.arange(400.0)), (60, 1))
+        share = transfer.correlated_share(g, 31)[30, 100:300]
+        expected = abs(np.sum(taps * np.exp(-1j * omega * m))) ** 2
+        # a 31 px box holds a whole number of periods only by chance: a few percent
+        np.testing.assert_allclose(np.median(share), expected, rtol=0.03)
+    assert np.all(noise_transfer().correlated_share(g, 31) == 1.0)

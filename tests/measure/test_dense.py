@@ -79,6 +79,27 @@ def test_an_illumination_ramp_that_differs_between_the_halves_does_not_shift_the
     assert np.mean(np.abs(err) <= 2 * surface.sigma_depth[ok]) >= MIN_INSIDE_2SIGMA
 
 
+FAINT_NOISE_DN = 30.0
+"""Noise of the faint-texture test: the texture's gradient (some 20 DN/px rms) is below
+it, and the noise of the interpolated derivative dominates the plain windows' error."""
+
+
+def test_faint_texture_is_measured_on_the_prefiltered_halves_within_its_sigma():
+    """Where the plain windows refuse a noisy texture as too imprecise, the prefiltered
+    ladder measures it, with errors inside the predicted sigma and no larger."""
+    import dataclasses
+
+    model = make_raytrace_model()
+    image = render_plane(model, DEPTH_MM, np.random.default_rng(7), noise_dn=FAINT_NOISE_DN)
+    plain = dense_surface(model, image, REGION, dataclasses.replace(SETTINGS, prefilter_px=0.0))
+    both = dense_surface(model, image, REGION, SETTINGS)
+    ok_plain, ok = plain.status == DenseStatus.OK, both.status == DenseStatus.OK
+    assert ok_plain.mean() < 0.25 < 0.5 < ok.mean()
+    err = both.depth[ok] - DEPTH_MM
+    assert np.mean(np.abs(err) <= 2 * both.sigma_depth[ok]) >= MIN_INSIDE_2SIGMA
+    assert np.median(np.abs(err)) <= np.median(np.abs(plain.depth[ok_plain] - DEPTH_MM))
+
+
 def test_the_calibrations_share_of_the_depth_sigma_matches_monte_carlo(plane):
     """The unscented transform of the parameters' covariance and the misfit's pixel
     offsets through triangulation, against sampling both and triangulating."""
@@ -162,7 +183,7 @@ def _candidate(w, sigma, status=None):
     status = np.zeros(w.shape, np.uint8) if status is None else np.asarray(status, np.uint8)
     nan = np.full(w.shape, np.nan)
     return _Candidate(w, sigma, np.full((*w.shape, 2), np.nan), nan, nan, status,
-                      np.zeros(w.shape, np.uint16))  # fmt: skip
+                      np.zeros(w.shape, np.uint16), np.zeros(w.shape, np.float32))  # fmt: skip
 
 
 def test_window_choice_grows_while_the_intervals_intersect():
@@ -177,6 +198,23 @@ def test_window_choice_grows_while_the_intervals_intersect():
     large = _candidate([1.4, 1.5 + far * 0.5, 1.1, 1.0], [0.1, 0.1, 0.1, 0.1], [0, 0, 0, 4])
     chosen = _choose_window({15: small, 31: middle, 63: large})
     assert chosen.tolist() == [2, 1, 2, -1]
+
+
+def test_the_prefiltered_ladder_answers_only_where_the_plain_one_matched_nothing():
+    """Three pixels: the plain ladder matched (its choice stands, though the prefiltered
+    one is more precise), matched nothing (the prefiltered ladder's choice), neither."""
+    from endomeasure.measure.dense import _chosen_rung, _Rung
+
+    refused = [0, DenseStatus.UNTEXTURED, DenseStatus.UNTEXTURED]
+    plain = [_Rung(15, 0.0), _Rung(31, 0.0)]
+    filtered = [_Rung(15, 1.0), _Rung(31, 1.0)]
+    candidates = {
+        plain[0]: _candidate([1.0, 1.0, 1.0], [0.5, 0.5, 0.5], refused),
+        plain[1]: _candidate([1.0, 1.0, 1.0], [0.5, 0.5, 0.5], refused),
+        filtered[0]: _candidate([1.0, 1.0, 1.0], [0.2, 0.2, 0.2], [0, 0, 2]),
+        filtered[1]: _candidate([1.0, 1.0, 1.0], [0.1, 0.1, 0.1], [0, 0, 2]),
+    }
+    assert _chosen_rung(candidates, [plain, filtered]).tolist() == [1, 3, -1]
 
 
 @pytest.mark.parametrize("side", [61, 253])  # every pixel; every 7th and interpolated

@@ -56,7 +56,7 @@ def _surface(model, depth_fn, status=None) -> DenseSurface:
     sigma = np.where(ok, SIGMA_MM, np.nan)
     return DenseSurface(REGION, np.where(ok, z, np.nan), sigma, np.where(ok[..., None], p, np.nan),
                         sigma, np.full((*uu.shape, 2), np.nan), nan, nan, np.zeros(uu.shape),
-                        st, (None, None), 1, np.where(ok, 31, 0))  # fmt: skip
+                        st, (None, None), 1, np.where(ok, 31, 0), np.zeros(uu.shape))  # fmt: skip
 
 
 def test_three_point_plane_offset_sigma_is_the_closed_form(model):

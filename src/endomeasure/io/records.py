@@ -659,7 +659,9 @@ def surface_record(
     Arrays over the region's rows and columns: ``depth`` and ``sigma_depth`` (float32,
     mm, NaN without depth), ``status`` (uint8, ``DenseStatus``), ``score`` (ZNCC,
     float32), ``right`` (matched right pixel, float32, px), ``window`` (uint16, side of the
-    window the depth comes from, px; 0 without depth); ``region`` (u0, v0, u1, v1).
+    window the depth comes from, px; 0 without depth), ``prefilter`` (float32, sigma of the
+    Gaussian that prefiltered that window's halves, px; 0: none); ``region`` (u0, v0, u1,
+    v1).
     """
     arrays = {
         "region": np.asarray(surface.region, dtype=np.int32),
@@ -669,8 +671,10 @@ def surface_record(
         "score": np.nan_to_num(surface.score, nan=-2.0).astype(np.float32),
         "right": surface.right.astype(np.float32),
         "window": surface.window.astype(np.uint16),
+        "prefilter": surface.prefilter.astype(np.float32),
     }
-    units = {"depth": "mm", "sigma_depth": "mm", "right": "px", "region": "px", "window": "px"}
+    units = {"depth": "mm", "sigma_depth": "mm", "right": "px", "region": "px", "window": "px",
+             "prefilter": "px"}  # fmt: skip
     return Record(
         SURFACE_RECORD,
         name,

@@ -122,6 +122,7 @@ from endomeasure.geometry.rays import common_perpendicular
 from endomeasure.interpolation import (
     CARDINAL_REACH,
     cardinal_weights,
+    noise_transfer,
     spline_coefficients,
     spline_sample,
 )
@@ -492,17 +493,15 @@ them is exact to about 1e-7)."""
 
 
 @functools.cache
-def _spline_table() -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def _spline_table() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Tables over the phases ``k / S``, ``k = 0..S`` (``S`` = :data:`_SPLINE_TABLE_STEPS`):
     the spline weights (S + 1, 2R + 1), the 1-D noise variance ``sum w^2`` and its
-    derivative (S + 1,), and the mean variance of the derivative, along any unit
-    direction, of unit white pixel noise interpolated in 2-D (about 2.16 per px^2)."""
+    derivative (S + 1,)."""
     phase = np.arange(_SPLINE_TABLE_STEPS + 1) / _SPLINE_TABLE_STEPS
     weight, slope = cardinal_weights(phase)
     variance = np.sum(weight**2, axis=-1)
     d_variance = 2.0 * np.sum(weight * slope, axis=-1)
-    derivative = float(np.mean(np.sum(slope[:-1] ** 2, axis=-1)) * np.mean(variance[:-1]))
-    return weight, variance, d_variance, derivative
+    return weight, variance, d_variance
 
 
 def _spline_noise_variance(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -512,7 +511,7 @@ def _spline_noise_variance(positions: np.ndarray) -> tuple[np.ndarray, np.ndarra
     It is 1 on the pixel grid and 0.57 midway between four pixels (0.76 per axis): an
     interpolated image is least noisy between pixels.
     """
-    _, table, d_table, _ = _spline_table()
+    _, table, d_table = _spline_table()
     grid = np.linspace(0.0, 1.0, _SPLINE_TABLE_STEPS + 1)
     frac = positions - np.floor(positions)
     per_axis = np.interp(frac, grid, table)
@@ -526,7 +525,7 @@ def _spline_derivative_noise() -> float:
     """Mean variance of the derivative, along any unit direction, of unit white pixel
     noise interpolated by the cubic spline (averaged over the sub-pixel phase): about
     2.16 per px^2."""
-    return _spline_table()[3]
+    return noise_transfer().derivative
 
 
 def _tabulated_weights(frac: np.ndarray) -> np.ndarray:
@@ -845,7 +844,8 @@ def _interpolated_noise_correlation(positions: np.ndarray) -> float:
     return float(np.mean(rows))
 
 
-def match_precision(energy_t, n, gain, noise_ref, noise_t, misfit, correlation) -> np.ndarray:
+def match_precision(energy_t, n, gain, noise_ref, noise_t, misfit, correlation,
+                    derivative_noise: float | None = None) -> np.ndarray:  # fmt: skip
     """Predicted standard deviation of the matched pixel along the curve, px of the
     searched half (see the module notes, *Precision*); vectorised over its arguments.
 
@@ -854,14 +854,19 @@ def match_precision(energy_t, n, gain, noise_ref, noise_t, misfit, correlation) 
     halves, ``noise_ref`` and ``noise_t`` the noise of the reference and searched half,
     ``misfit`` the two patches' difference beyond noise per sample
     (:func:`_measured_misfit`) and ``correlation`` from
-    :func:`_interpolated_noise_correlation`. Returns ``inf`` where ``energy_t`` is not
-    positive. The dense search (:mod:`endomeasure.measure.dense`) uses it per pixel.
+    :func:`_interpolated_noise_correlation`; ``derivative_noise`` the variance of the
+    searched half's interpolated derivative per unit pixel noise (default the plain
+    spline's, :func:`_spline_derivative_noise`; less after a prefilter). Returns ``inf``
+    where ``energy_t`` is not positive. The dense search
+    (:mod:`endomeasure.measure.dense`) uses it per pixel.
     """
     energy = np.asarray(energy_t, dtype=np.float64)
     ok = energy > 0
     safe = np.where(ok, energy, 1.0)
     first = (gain**2 * noise_ref**2 + correlation * noise_t**2) / safe
-    second = n * _spline_derivative_noise() * noise_t**2 / safe
+    if derivative_noise is None:
+        derivative_noise = _spline_derivative_noise()
+    second = n * derivative_noise * noise_t**2 / safe
     return np.where(ok, np.sqrt(first * (1.0 + second) + misfit**2 / safe), np.inf)
 
 

@@ -14,7 +14,7 @@ Method
    normalised cross-correlation (ZNCC, about each window's best plane) over a square
    window (box filters). The best level per pixel and a parabola give the coarse depth.
    The same sweep from the right half gives its own coarse depth map, for the left-right
-   check.
+   check. Both sweep the prefiltered halves of step 3 (they only give starts).
 2. **Refinement along the curve, per window size.** Square windows of several sides
    (``window_range_px``) are warped by a start surface and shifted together along their
    pixels' curves (points from the table, Catmull-Rom in space and depth, the right half
@@ -24,14 +24,18 @@ Method
 3. **Window per pixel** (:func:`_choose_window`): the largest size whose depth interval
    meets those of all smaller sizes (intersection of confidence intervals), so windows
    grow where the surface is smooth on their scale and stay small at a pit or an edge.
+   Where no window matched, a second ladder of the larger windows on both halves
+   prefiltered by a Gaussian (``prefilter_px``) gets its turn: it measures texture too
+   faint against the noise for the plain windows (:meth:`DenseSettings.ladders`).
 4. **Passes** (:func:`_adaptive_refinement`): the first starts from the sweep, each later
    one from the previous one's depths, fitted by a local quadratic over a few windows
    (:func:`_smooth_base`); the start's shape error inside a window enters the depth, and
    it shrinks with each pass.
 5. **Precision.** The match's standard deviation along the curve (px) is the operator
    search's formula (:func:`~endomeasure.measure.correspondence.match_precision`) from
-   the warped window's derivative energy along the curve tangent, both halves' noise and
-   the window's misfit; divided by ``|dq/dw|`` it is the sigma of ``w``, carried to ``z``
+   the warped window's derivative energy along the curve tangent, both halves' noise (as
+   a prefilter passes it on: :class:`~endomeasure.interpolation.NoiseTransfer`) and the
+   window's misfit; divided by ``|dq/dw|`` it is the sigma of ``w``, carried to ``z``
    by the unscented transform (:func:`~endomeasure.solvers.uncertainty.unscented`,
    vectorised over pixels); the calibration's share is added when given
    (:func:`_calibration_sigma`).
@@ -56,7 +60,12 @@ import numpy as np
 from endomeasure import defaults
 from endomeasure.conventions import Half
 from endomeasure.errors import BadInputError
-from endomeasure.interpolation import noise_gain, spline_coefficients
+from endomeasure.interpolation import (
+    NoiseTransfer,
+    gaussian_taps,
+    noise_transfer,
+    spline_coefficients,
+)
 from endomeasure.measure.correspondence import (
     MAX_PRECISION_PX,
     MIN_SCORE,
@@ -129,6 +138,15 @@ class DenseSettings:
     smooth_px : int
         Side of the median that removes outliers from a pass's depths before its start
         surface is fitted (odd).
+    prefilter_px : float
+        Sigma of the Gaussian with which both halves are prefiltered for a second
+        ladder, the larger windows again, where no plain window matched (0: none).
+        Where the texture's gradient is faint against the noise, the noise of the
+        interpolated derivative dominates the match's error; the prefilter cuts it
+        about fifty-fold (1 px) and keeps the texture an endoscope's optics pass at low
+        contrast. Where the texture is sharp and strong, the plain windows are more
+        precise, and a start surface from the prefiltered depths would cost them
+        accuracy: so the plain ladder first.
     """
 
     window_px: int = defaults.DENSE_WINDOW_PX
@@ -141,6 +159,7 @@ class DenseSettings:
     grid_px: int = 4
     consistency_levels: float = 2.0
     smooth_px: int = 5
+    prefilter_px: float = 1.0
 
     def __post_init__(self):
         if self.window_px < 3 or self.window_px % 2 == 0:
@@ -152,6 +171,8 @@ class DenseSettings:
             raise BadInputError(
                 f"window sizes {small}-{large} px: need an odd smallest >= 3 and largest >= it"
             )
+        if not self.prefilter_px >= 0:
+            raise BadInputError(f"prefilter sigma {self.prefilter_px} px is not >= 0")
         near, far = self.depth_range_mm
         if not 0 < near < far:
             raise BadInputError(f"depth range {near}-{far} mm is not 0 < near < far")
@@ -163,6 +184,25 @@ class DenseSettings:
             sizes.append(2 * sizes[-1] + 1)
         return sizes
 
+    def ladders(self) -> list[list[_Rung]]:
+        """The refinement's rungs, ladder by ladder in order of preference: every window
+        on the plain halves, then (where none of them matched) the two largest on the
+        prefiltered ones (the smallest is too noisy for faint texture even then). Each
+        ladder's window is chosen by :func:`_choose_window`."""
+        sizes = self.windows()
+        plain = [_Rung(size, 0.0) for size in sizes]
+        if self.prefilter_px <= 0:
+            return [plain]
+        return [plain, [_Rung(size, self.prefilter_px) for size in sizes[-2:]]]
+
+
+class _Rung(NamedTuple):
+    """One window of the refinement: its side (px) and the sigma of the Gaussian that
+    prefiltered the halves it matches (px, 0: none)."""
+
+    size: int
+    blur: float
+
 
 class DenseSurface(NamedTuple):
     """The dense result over a region of the left half (arrays (h, w) over the region).
@@ -171,7 +211,8 @@ class DenseSurface(NamedTuple):
     where ``status`` is not OK); ``points`` (h, w, 3) mm; ``sigma_point`` the 1-sigma
     of the point along its ray, mm; ``right`` (h, w, 2) the matched right pixel;
     ``precision_px`` the match's sigma along the curve; ``score`` the ZNCC corrected for
-    noise; ``grey`` the left image's values; ``status`` :class:`DenseStatus` codes (uint8).
+    noise; ``grey`` the left image's values; ``status`` :class:`DenseStatus` codes (uint8);
+    ``window`` and ``prefilter`` the rung each depth comes from (:meth:`DenseSettings.ladders`).
     """
 
     region: tuple[int, int, int, int]  # u0, v0, u1, v1: columns u0 <= u < u1
@@ -187,6 +228,7 @@ class DenseSurface(NamedTuple):
     noise: tuple[NoiseLevel, NoiseLevel]  # per half, grey levels
     levels: int  # coarse sweep levels
     window: np.ndarray  # (h, w) uint16: side of the window each depth comes from, px (0: none)
+    prefilter: np.ndarray  # (h, w) float32: sigma of the prefilter of that window's halves, px
 
 
 def check_region(model: CameraModel, region: tuple[int, int, int, int] | None, window: int):
@@ -554,8 +596,9 @@ def _catmull_rom_matrix(n: int, nodes: int, step: int) -> np.ndarray:
 
 class _Candidate(NamedTuple):
     """A match per pixel: inverse depth, its sigma, the right pixel, the noise-corrected
-    score, the precision along the curve (px), the status and the window's side (px; 0:
-    none matched, ``status`` then says why the largest size failed)."""
+    score, the precision along the curve (px), the status, the window's side (px; 0:
+    none matched, ``status`` then says why the last rung failed) and the sigma of its
+    halves' prefilter (px)."""
 
     w: np.ndarray
     sigma_w: np.ndarray
@@ -564,11 +607,13 @@ class _Candidate(NamedTuple):
     precision: np.ndarray
     status: np.ndarray
     window: np.ndarray
+    prefilter: np.ndarray
 
 
-def _refine(table: _CurveTable, bases: dict, refs: dict, right: _RightHalf, noise,
+def _refine(table: _CurveTable, bases: dict, refs: dict, images: dict,
             settings: DenseSettings) -> dict:  # fmt: skip
-    """Each window size's match around its start surface ``bases[size]``.
+    """Each rung's match around its start surface ``bases[rung.size]``, on the halves of
+    ``images[rung.blur]``.
 
     The other half is sampled along every pixel's curve at sub-levels within
     ``fine_reach`` coarse levels of the start; the ZNCC peak and a parabola give the
@@ -579,9 +624,9 @@ def _refine(table: _CurveTable, bases: dict, refs: dict, right: _RightHalf, nois
     n_fine = int(np.ceil(settings.fine_reach * settings.fine_steps))
     offsets = np.arange(-n_fine, n_fine + 1) / settings.fine_steps * table.dw
     out = {}
-    for size, ref in refs.items():
-        base = bases[size]
-        fine = np.stack([_zncc(ref, right.values_along(table, base + dj), size)[0]
+    for rung, ref in refs.items():
+        size, base, image = rung.size, bases[rung.size], images[rung.blur]
+        fine = np.stack([_zncc(ref, image.right.values_along(table, base + dj), size)[0]
                          for dj in offsets])  # fmt: skip
         best = np.argmax(np.nan_to_num(fine, nan=-2.0), axis=0)
         rows, cols = np.indices(best.shape)
@@ -595,15 +640,16 @@ def _refine(table: _CurveTable, bases: dict, refs: dict, right: _RightHalf, nois
         # stretch may lie beyond it
         unseen = ~(np.isfinite(y0) & np.isfinite(y_minus) & np.isfinite(y_plus))
         end = (best == 0) | (best == offsets.size - 1)
-        q_r, score, precision, sigma_w = _match_at(table, w, ref, right, noise, size)
+        q_r, score, precision, sigma_w = _match_at(table, w, ref, image, size)
         status = np.full(w.shape, DenseStatus.OK, dtype=np.uint8)
         status[unseen | ~np.isfinite(score)] = DenseStatus.NOT_SEEN
         status[(status == DenseStatus.OK) & end] = DenseStatus.AT_RANGE_END
         imprecise = ~(precision <= MAX_PRECISION_PX)
         status[(status == DenseStatus.OK) & imprecise] = DenseStatus.UNTEXTURED
         status[(status == DenseStatus.OK) & ~(score >= MIN_SCORE)] = DenseStatus.LOW_SCORE
-        out[size] = _Candidate(w, sigma_w, q_r, score, precision, status,
-                               np.full(w.shape, size, dtype=np.uint16))  # fmt: skip
+        out[rung] = _Candidate(w, sigma_w, q_r, score, precision, status,
+                               np.full(w.shape, size, dtype=np.uint16),
+                               np.full(w.shape, rung.blur, dtype=np.float32))  # fmt: skip
     return out
 
 
@@ -614,22 +660,25 @@ smooth surface they agree on (5 % of the time by noise alone)."""
 
 
 def _choose_window(candidates: dict) -> np.ndarray:
-    """Per pixel, the largest window size whose match agrees with every smaller one's.
+    """Per pixel, the last rung (the largest window) whose match agrees with every
+    earlier one's.
 
     The intersection of confidence intervals rule (Goldenshluger and Nemirovski; Katkovnik's
     adaptive windows): windows grow while the intervals ``w +- gamma sigma`` of all
-    matched sizes so far have a common point. A large window is precise where the
+    matched rungs so far have a common point. A large window is precise where the
     surface is smooth on its scale; where it is not (a pit, an edge) its depth leaves the
-    smaller windows' interval and growth stops. Sizes whose match is refused are skipped.
-    Returns the index into the sorted sizes (-1: no size matched).
+    smaller windows' interval and growth stops. Rungs whose match is refused are skipped.
+    ``candidates`` is keyed in the rungs' order, one ladder
+    (:meth:`DenseSettings.ladders`). Returns the index into that order (-1: no rung
+    matched).
     """
-    sizes = sorted(candidates)
-    shape = candidates[sizes[0]].w.shape
+    rungs = list(candidates)
+    shape = candidates[rungs[0]].w.shape
     lo, hi = np.full(shape, -np.inf), np.full(shape, np.inf)
     chosen = np.full(shape, -1, dtype=np.intp)
     growing = np.ones(shape, dtype=bool)
-    for index, size in enumerate(sizes):
-        c = candidates[size]
+    for index, rung in enumerate(rungs):
+        c = candidates[rung]
         usable = growing & (c.status == DenseStatus.OK)
         with np.errstate(invalid="ignore"):
             new_lo = np.maximum(lo, c.w - _ICI_GAMMA * c.sigma_w)
@@ -638,6 +687,18 @@ def _choose_window(candidates: dict) -> np.ndarray:
         growing &= ~(usable & ~agree)
         lo, hi = np.where(agree, new_lo, lo), np.where(agree, new_hi, hi)
         chosen[agree] = index
+    return chosen
+
+
+def _chosen_rung(candidates: dict, ladders: list) -> np.ndarray:
+    """Per pixel, the index into ``candidates`` (keyed by rung, ladder after ladder) of
+    the first ladder's choice that matched (-1: none)."""
+    chosen = np.full(candidates[ladders[0][0]].w.shape, -1, dtype=np.intp)
+    first = 0
+    for ladder in ladders:
+        mine = _choose_window({rung: candidates[rung] for rung in ladder})
+        chosen = np.where((chosen < 0) & (mine >= 0), first + mine, chosen)
+        first += len(ladder)
     return chosen
 
 
@@ -700,16 +761,17 @@ def dense_surface(
     left = _Frame(fu0, fv0, fu1, fv1, Half.LEFT)
     levels = _levels(model, left, settings)
     table = _curve_table(model, left, levels, settings.grid_px)
-    coarse = _coarse(model, grey, table, left, levels, settings)
+    # the sweep only gives the refinement its start: on the prefiltered halves, where
+    # faint texture still finds its level
+    swept = _prefiltered(grey, split, settings.prefilter_px)
+    coarse = _coarse(model, swept, table, left, levels, settings)
 
-    coeffs, origin = spline_coefficients(
-        grey, np.array([[split, 0], [width - 1, height - 1]], float), cols=(split, width - 1)
-    )
-    right_half = _RightHalf(coeffs, origin, split, width, height)
-    refs = {size: _ref_stats(grey[fv0:fv1, fu0:fu1], size) for size in sizes}
-    match = _adaptive_refinement(table, coarse.w, refs, right_half, noise, levels, settings)
+    rungs = [rung for ladder in settings.ladders() for rung in ladder]
+    images = {blur: _image(grey, split, blur, noise, left) for blur in {r.blur for r in rungs}}
+    refs = {rung: _ref_stats(images[rung.blur].grey, rung.size) for rung in rungs}
+    match = _adaptive_refinement(table, coarse.w, refs, images, levels, settings)
     w, sigma_w, q_r, status = match.w, match.sigma_w, match.right, match.status
-    _check_consistency(model, grey, status, q_r, w, levels, settings)
+    _check_consistency(model, swept, status, q_r, w, levels, settings)
     region_px = np.stack(np.meshgrid(np.arange(u0, u1, dtype=np.float64),
                                      np.arange(v0, v1, dtype=np.float64)), -1)  # fmt: skip
     rays = model.rays(region_px, Half.LEFT)
@@ -753,6 +815,7 @@ def dense_surface(
         noise=noise,
         levels=int(levels.size),
         window=np.where(ok, match.window[inner], 0).astype(np.uint16),
+        prefilter=np.where(ok, match.prefilter[inner], 0.0).astype(np.float32),
     )
 
 
@@ -765,7 +828,7 @@ check both: the "matching alone" columns of ``bench/accuracy_dense.py --designs`
 
 
 def _picked(candidates: dict, chosen: np.ndarray) -> _Candidate:
-    """Each pixel's fields from its chosen size (``chosen``: index into the sorted sizes).
+    """Each pixel's fields from its chosen rung (``chosen``: index into the rungs).
 
     The chosen window agrees with the smaller ones only within their intervals, so its
     smoothing of what it cannot follow (a pit narrower than the window) may reach their
@@ -774,33 +837,34 @@ def _picked(candidates: dict, chosen: np.ndarray) -> _Candidate:
     surface is smooth: the nested windows share their noise), estimates that bias; the
     largest is added to the sigma in quadrature.
     """
-    sizes = sorted(candidates)
+    rungs = list(candidates)
     pick = np.maximum(chosen, 0)
 
     def gather(field):
-        stack = np.stack([getattr(candidates[size], field) for size in sizes])
+        stack = np.stack([getattr(candidates[rung], field) for rung in rungs])
         index = pick[None, ..., None] if stack.ndim == pick.ndim + 2 else pick[None]
         return np.take_along_axis(stack, index, axis=0)[0]
 
     w, sigma_w = gather("w"), gather("sigma_w")
     bias2 = np.zeros(w.shape)
-    for index, size in enumerate(sizes[:-1]):
-        c = candidates[size]
+    for index, rung in enumerate(rungs[:-1]):
+        c = candidates[rung]
         smaller = (index < chosen) & (c.status == DenseStatus.OK)
         with np.errstate(invalid="ignore"):
             excess = (w - c.w) ** 2 - c.sigma_w**2
         bias2 = np.where(smaller & (excess > bias2), excess, bias2)
     matched = chosen >= 0
-    # no size matched: the largest size's reason (it has the most evidence)
-    status = np.where(matched, DenseStatus.OK, candidates[sizes[-1]].status).astype(np.uint8)
+    # no rung matched: the last rung's reason (it has the most evidence)
+    status = np.where(matched, DenseStatus.OK, candidates[rungs[-1]].status).astype(np.uint8)
     window = np.where(matched, gather("window"), 0)
+    prefilter = np.where(matched, gather("prefilter"), 0.0)
     return _Candidate(w, np.sqrt(sigma_w**2 + bias2), gather("right"), gather("score"),
-                      gather("precision"), status, window)  # fmt: skip
+                      gather("precision"), status, window, prefilter)  # fmt: skip
 
 
-def _adaptive_refinement(table, coarse_w, refs: dict, right, noise, levels,
+def _adaptive_refinement(table, coarse_w, refs: dict, images: dict, levels,
                          settings: DenseSettings) -> _Candidate:  # fmt: skip
-    """``settings.passes`` refinement passes, every window size each, the size by ICI.
+    """``settings.passes`` refinement passes, every rung each, the rung by ICI.
 
     The first pass starts from the sweep's depths, each later one from the previous
     pass's chosen depths; every size's start is that surface smoothed over
@@ -808,15 +872,15 @@ def _adaptive_refinement(table, coarse_w, refs: dict, right, noise, levels,
     the depth at the window's centre whole; it shrinks with every pass as the depths
     it is fitted to improve (how much: ``docs/surface.md``).
     """
-    sizes = sorted(refs)
+    sizes = sorted({rung.size for rung in refs})
     start = coarse_w
     for _ in range(settings.passes):
         bases = {size: _smooth_base(start, settings.smooth_px, _START_SPAN * size + 1)
                  for size in sizes}  # fmt: skip
         if not np.isfinite(bases[sizes[0]]).any():  # no depth anywhere: the range's middle
             bases = dict.fromkeys(sizes, np.full(coarse_w.shape, levels.mean()))
-        candidates = _refine(table, bases, refs, right, noise, settings)
-        chosen = _choose_window(candidates)
+        candidates = _refine(table, bases, refs, images, settings)
+        chosen = _chosen_rung(candidates, settings.ladders())
         match = _picked(candidates, chosen)
         start = np.where(chosen >= 0, match.w, np.nan)
     return match
@@ -860,41 +924,87 @@ class _RightHalf(NamedTuple):
                 float(self.height - 1))  # fmt: skip
 
 
-def _match_at(table: _CurveTable, w, ref, right: _RightHalf, noise, window: int):
-    """The match at inverse depth ``w`` with square windows of side ``window``: the right
-    pixel, the noise-corrected ZNCC, the precision along the curve (px) and the sigma
-    of ``w``."""
-    from endomeasure.measure.correspondence import _spline_derivative_noise
+class _Image(NamedTuple):
+    """The split frame as one prefilter leaves it: the reference frame's grey levels, the
+    right half's spline, the raw image's noise per half, and how the prefilter and the
+    spline pass that noise on to a sample and its derivative."""
 
-    along = right.along(table, w)
+    grey: np.ndarray
+    right: _RightHalf
+    noise: tuple[NoiseLevel, NoiseLevel]
+    transfer: NoiseTransfer
+
+
+def _prefiltered(grey: np.ndarray, split: int, blur: float) -> np.ndarray:
+    """The whole frame ``grey`` convolved with a Gaussian of ``blur`` px (0: itself), each
+    half on its own (no light crosses the apex band)."""
+    import cv2
+
+    if blur <= 0:
+        return grey
+    kernel = np.asarray(gaussian_taps(blur))
+    return np.concatenate([
+        cv2.sepFilter2D(np.ascontiguousarray(grey[:, cols]), cv2.CV_64F, kernel, kernel,
+                        borderType=cv2.BORDER_REFLECT)
+        for cols in (slice(0, split), slice(split, grey.shape[1]))
+    ], axis=1)  # fmt: skip
+
+
+def _image(grey: np.ndarray, split: int, blur: float, noise, frame: _Frame) -> _Image:
+    """The :class:`_Image` of the whole frame ``grey`` prefiltered by a Gaussian of
+    ``blur`` px (:func:`_prefiltered`)."""
+    height, width = grey.shape
+    taps = gaussian_taps(blur)
+    grey = _prefiltered(grey, split, blur)
+    coeffs, origin = spline_coefficients(
+        grey, np.array([[split, 0], [width - 1, height - 1]], float), cols=(split, width - 1)
+    )
+    return _Image(grey[frame.v0 : frame.v1, frame.u0 : frame.u1],
+                  _RightHalf(coeffs, origin, split, width, height), noise,
+                  noise_transfer(taps))  # fmt: skip
+
+
+def _match_at(table: _CurveTable, w, ref, image: _Image, window: int):
+    """The match at inverse depth ``w`` with square windows of side ``window`` on the
+    halves of ``image``: the right pixel, the noise-corrected ZNCC, the precision along
+    the curve (px) and the sigma of ``w``."""
+    along = image.right.along(table, w)
     rate = np.linalg.norm(along.dq_dw, axis=-1)  # px per unit inverse depth
     with np.errstate(invalid="ignore", divide="ignore"):
         tangent = along.dq_dw / rate[..., None]
     ncc, gain, var_r, mean_r = _zncc(ref, along.values, window)
-    # each window's noise at its own signal level (the sensor's noise grows with it)
-    noise_l = noise[0].sigma(ref.mean)
-    noise_r = noise[1].sigma(mean_r)
+    # each window's noise at its own signal level (the sensor's noise grows with it), as
+    # the raw image has it; per sample, as the prefilter and the spline pass it on
+    noise_l = image.noise[0].sigma(ref.mean)
+    noise_r = image.noise[1].sigma(mean_r)
+    transfer = image.transfer
+    on_grid = float(transfer.gain(0.0)) ** 2
     n = window**2
     frac = np.nan_to_num(along.q - np.floor(along.q))
-    interpolated = _box(noise_gain(frac[..., 0]) * noise_gain(frac[..., 1]), window)
+    interpolated = _box(transfer.gain(frac[..., 0]) * transfer.gain(frac[..., 1]), window)
     # the noise-corrected score as the operator search's (so that MIN_SCORE means the
     # same); the windows' variances per degree of freedom (n - 3 about their plane)
     dof = n / (n - 3)
-    score = noise_corrected_score(ncc, (ref.var * dof, noise_l**2),
+    score = noise_corrected_score(ncc, (ref.var * dof, noise_l**2 * on_grid),
                                   (var_r * dof, noise_r**2 * interpolated))  # fmt: skip
     g = np.nan_to_num(np.einsum("...i,...i->...", along.gradient, tangent))
     # the derivative's energy left once the windows lose their mean and trend (the part
     # of the signal the correlation uses); the derivative of the interpolated noisy image
     # carries noise energy of its own over the n - 3 remaining degrees of freedom
     energy = n * _detrended(g, window)[3]
-    energy -= (n - 3) * _spline_derivative_noise() * noise_r**2
+    energy -= (n - 3) * transfer.derivative * noise_r**2
     with np.errstate(invalid="ignore", divide="ignore"):
         # the fit ref ~ gain * other + plane; its residual beyond the noise (over its
         # n - 4 degrees of freedom) is the misfit
         residual = ref.var * (1.0 - np.clip(ncc, -1, 1) ** 2) / gain**2
-        expected = (noise_l**2 / gain**2 + noise_r**2) * (n - 4) / n
+        expected = (noise_l**2 / gain**2 + noise_r**2) * on_grid * (n - 4) / n
         misfit = np.sqrt(np.maximum(residual - expected, 0.0))
-        precision = match_precision(energy, n, 1.0 / np.abs(gain), noise_l, noise_r, misfit, 1.0)
+        # the first-order term: the raw noise's, times the share a prefilter's correlated
+        # noise (covariance k * k) keeps of it for this derivative
+        share = transfer.correlated_share(g, window)
+        precision = match_precision(energy, n, 1.0 / np.abs(gain), noise_l * np.sqrt(share),
+                                    noise_r, misfit, share,
+                                    derivative_noise=transfer.derivative)  # fmt: skip
         sigma_w = precision / rate
     return along.q, score, precision, sigma_w
 

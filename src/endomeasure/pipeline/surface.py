@@ -168,6 +168,7 @@ def surface(
     if store:
         attrs = {"method": METHOD, "window_px": settings.window_px,
                  "window_range_px": list(settings.window_range_px),
+                 "prefilter_px": settings.prefilter_px,
                  "depth_range_mm": list(settings.depth_range_mm), "levels": result.levels,
                  "noise_level": [list(n) for n in result.noise], "counts": counts}  # fmt: skip
         with edit_session(session) as writer:
