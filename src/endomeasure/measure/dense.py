@@ -147,6 +147,11 @@ class DenseSettings:
         contrast. Where the texture is sharp and strong, the plain windows are more
         precise, and a start surface from the prefiltered depths would cost them
         accuracy: so the plain ladder first.
+    prefilter_stride : float
+        The prefiltered ladder's searched stretch and its sub-level spacing, in
+        multiples of the plain ladder's (the same number of samples, so the same cost):
+        its correlation peaks are broader (the prefilter widens them), and its starts
+        worse (it works where the plain windows found nothing: dim, faint texture).
     """
 
     window_px: int = defaults.DENSE_WINDOW_PX
@@ -160,6 +165,7 @@ class DenseSettings:
     consistency_levels: float = 2.0
     smooth_px: int = 5
     prefilter_px: float = 1.0
+    prefilter_stride: float = 2.0
 
     def __post_init__(self):
         if self.window_px < 3 or self.window_px % 2 == 0:
@@ -626,15 +632,16 @@ def _refine(table: _CurveTable, bases: dict, refs: dict, images: dict,
     out = {}
     for rung, ref in refs.items():
         size, base, image = rung.size, bases[rung.size], images[rung.blur]
+        stretch = offsets * (settings.prefilter_stride if rung.blur > 0 else 1.0)
         fine = np.stack([_zncc(ref, image.right.values_along(table, base + dj), size)[0]
-                         for dj in offsets])  # fmt: skip
+                         for dj in stretch])  # fmt: skip
         best = np.argmax(np.nan_to_num(fine, nan=-2.0), axis=0)
         rows, cols = np.indices(best.shape)
         y0 = fine[best, rows, cols]
         y_minus = fine[np.maximum(best - 1, 0), rows, cols]
         y_plus = fine[np.minimum(best + 1, offsets.size - 1), rows, cols]
         w = base + np.interp(best + _parabola(y_minus, y0, y_plus), np.arange(offsets.size),
-                             offsets)  # fmt: skip
+                             stretch)  # fmt: skip
         # a window the right half does not see whole at the peak or beside it has no
         # peak to place: not seen (the overlap's edge); a peak at an end of the searched
         # stretch may lie beyond it
