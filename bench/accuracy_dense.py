@@ -71,6 +71,7 @@ class Frame(NamedTuple):
     match_errors: np.ndarray  # |z - z of the true match under the model| / z
     match_within: np.ndarray  # bool: inside the match's own 2 sigma
     calibration_bias: float  # median (z of the true match under the model - z) / z
+    calibration_dz: tuple  # (near, far) median z error of true points, mm (_calibration_dz)
 
 
 def frame(label, cm, preset, target, image, settings) -> Frame:
@@ -101,7 +102,33 @@ def frame(label, cm, preset, target, image, settings) -> Frame:
     return Frame(label, err / truth[ok], err <= 2 * surface.sigma_depth[ok],
                  surface.sigma_depth[ok] / truth[ok], int(both.sum()), refused,
                  float(np.nanmedian(truth)), seconds, ratio, image.shape, match_err,
-                 match_within, bias)  # fmt: skip
+                 match_within, bias, _calibration_dz(cm, preset))  # fmt: skip
+
+
+def _calibration_dz(cm, preset) -> tuple[float, float]:
+    """The calibrated model's z error (mm, median over a grid of the left half's field)
+    of true points at the nearest and the farthest depth the calibration saw the board:
+    each point's true pixels in both halves (the truth optics) triangulated with the
+    model. An error proportional to z is a scale error; one constant in mm is the model
+    frame's origin set off the truth's along the axis, which no length sees."""
+    from endomeasure.conventions import Half
+    from endomeasure.solvers.triangulate import triangulate
+
+    truth, model = preset.truth_optics, cm.model
+    split, height = model.config.split, model.config.image_size[1]
+    gu, gv = np.meshgrid(np.linspace(0.1, 0.95, 12) * split, np.linspace(0.1, 0.9, 10) * height)
+    left = np.stack([gu, gv], -1).reshape(-1, 2)
+    rays = truth.rays(left, Half.LEFT)
+    near, far = cm.depth_range_mm or (np.nan, np.nan)
+    out = []
+    for z in (near, far):
+        t = (z - rays.origins[:, 2]) / rays.directions[:, 2]
+        right = truth.project(rays.origins + t[:, None] * rays.directions, Half.RIGHT)
+        seen = right.status == 0
+        tri = triangulate(model, left[seen], right.pixels[seen])
+        ok = tri.status == 0
+        out.append(float(np.median(tri.points[ok, 2] - z)) if ok.any() else np.nan)
+    return out[0], out[1]
 
 
 def _split_budget(cm, misfit, surface, ok, truth, true_right):
@@ -138,7 +165,8 @@ def _row(f: Frame) -> str:
         f"| {f.label} | {f.z_mm:.1f} | {100 * f.errors.size / max(f.counted, 1):.1f} | "
         f"{pct(f.errors, np.median, 3)} | {pct(f.within, np.mean, 1)} | "
         f"{pct(f.sigma, np.median, 3)} | {pct(f.match_errors, np.median, 3)} | "
-        f"{pct(f.match_within, np.mean, 1)} | {100 * f.calibration_bias:+.3f} | {f.seconds:.1f} | "
+        f"{pct(f.match_within, np.mean, 1)} | {100 * f.calibration_bias:+.3f} | "
+        f"{f.calibration_dz[0]:+.3f} / {f.calibration_dz[1]:+.3f} | {f.seconds:.1f} | "
         + ", ".join(f"{k} {v}" for k, v in f.refused.items() if v)
         + " |"
     )
@@ -211,6 +239,12 @@ def main() -> int:
     parser.add_argument("--images", type=int, default=1, help="scene images per design")
     parser.add_argument("--window-range", type=window_range, default=None,
                         help="refinement windows LO,HI px (default: surface's)")  # fmt: skip
+    parser.add_argument(
+        "--prefilter",
+        type=float,
+        default=None,
+        help="prefiltered ladder's sigma, px (0: none; default: surface's)",
+    )
     args = parser.parse_args()
     from endomeasure import defaults
     from endomeasure.measure.dense import DenseSettings
@@ -218,8 +252,11 @@ def main() -> int:
 
     windows = args.window_range or defaults.DENSE_WINDOW_RANGE_PX
 
+    prefilter = DenseSettings().prefilter_px if args.prefilter is None else args.prefilter
+
     def settings_for(cm):  # as `endomeasure surface` does
-        return DenseSettings(depth_range_mm=search_depths(cm), window_range_px=windows)
+        return DenseSettings(depth_range_mm=search_depths(cm), window_range_px=windows,
+                             prefilter_px=prefilter)  # fmt: skip
 
     frames = default_frames(args.session, settings_for)
     design = []
@@ -251,6 +288,8 @@ def main() -> int:
         command += f" --images {args.images}"
     if args.window_range is not None:
         command += f" --window-range {windows[0]},{windows[1]}"
+    if args.prefilter is not None:
+        command += f" --prefilter {args.prefilter:g}"
     body = "\n".join([
         "## Dense surfaces on the scene images",
         "",
@@ -258,12 +297,15 @@ def main() -> int:
         "design: its own calibration from its own images). Truth: the simulator's per-pixel "
         "depth through the truth optics; counted: left pixels whose true surface point the "
         f"right half sees. Sweep window {defaults.DENSE_WINDOW_PX} px, refinement windows "
-        f"{windows[0]}-{windows[1]} px. *Matching alone*: the depth against the calibrated "
-        "model's own depth of the true match (the truth optics' right pixel of the true "
-        "point, triangulated with the model), against the match's sigma without the "
-        "calibration's share; the *calibration's depth bias* is that depth against the "
-        "truth: what no matching can remove, and what the calibration's covariance and "
-        "misfit must hold.",
+        f"{windows[0]}-{windows[1]} px, prefiltered ladder {prefilter:g} px. *Matching "
+        "alone*: the depth against the calibrated model's own depth of the true match "
+        "(the truth optics' right pixel of the true point, triangulated with the model), "
+        "against the match's sigma without the calibration's share; the *calibration's "
+        "depth bias* is that depth against the truth: what no matching can remove, and "
+        "what the calibration's covariance and misfit must hold. The *calibration's z "
+        "error* at the nearest and farthest depth its boards were seen at (true points "
+        "over the field, triangulated from their true pixels): constant in mm, it is the "
+        "model frame's origin set off the truth's along the axis, which no length sees.",
         "",
         "| images | frames | depth for % | median abs z error % of z | inside 2 sigma % | "
         "matching alone: median % of z | matching alone: inside its 2 sigma % |",
@@ -272,8 +314,9 @@ def main() -> int:
         "",
         "| image | z mm | depth for % | median abs z error % of z | inside 2 sigma % | "
         "median predicted sigma % of z | matching alone: median % of z | matching alone: "
-        "inside its 2 sigma % | calibration's depth bias % of z | s | counted pixels refused |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        "inside its 2 sigma % | calibration's depth bias % of z | calibration's z error at "
+        "its nearest / farthest board depth, mm | s | counted pixels refused |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
         *[_row(f) for f in everything],
         "",
         f"- {checks['coverage'].target}: {coverage:.1f} % ({checks['coverage']})",

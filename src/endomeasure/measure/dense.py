@@ -193,8 +193,8 @@ class DenseSettings:
     def ladders(self) -> list[list[_Rung]]:
         """The refinement's rungs, ladder by ladder in order of preference: every window
         on the plain halves, then (where none of them matched) the two largest on the
-        prefiltered ones (the smallest is too noisy for faint texture even then). Each
-        ladder's window is chosen by :func:`_choose_window`."""
+        prefiltered ones (the prefilter is for faint texture, of which a small window
+        holds too little). Each ladder's window is chosen by :func:`_choose_window`."""
         sizes = self.windows()
         plain = [_Rung(size, 0.0) for size in sizes]
         if self.prefilter_px <= 0:
@@ -376,11 +376,18 @@ def _levels(model, frame: _Frame, settings: DenseSettings) -> np.ndarray:
 # ----- correlation ------------------------------------------------------------------------
 
 
+def _depth(x: np.ndarray) -> int:
+    """OpenCV's output depth for ``x``: float32 stays float32 (the sweep), else float64."""
+    import cv2
+
+    return cv2.CV_32F if x.dtype == np.float32 else cv2.CV_64F
+
+
 def _box(x: np.ndarray, window: int) -> np.ndarray:
     import cv2
 
     return cv2.boxFilter(
-        x, cv2.CV_64F, (window, window), normalize=True, borderType=cv2.BORDER_REFLECT
+        x, _depth(x), (window, window), normalize=True, borderType=cv2.BORDER_REFLECT
     )
 
 
@@ -401,8 +408,8 @@ def _trend(x: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
     ramp, flat, _ = _ramp_kernels(window)
     border = cv2.BORDER_REFLECT
     return (
-        cv2.sepFilter2D(x, cv2.CV_64F, ramp, flat, borderType=border),
-        cv2.sepFilter2D(x, cv2.CV_64F, flat, ramp, borderType=border),
+        cv2.sepFilter2D(x, _depth(x), ramp, flat, borderType=border),
+        cv2.sepFilter2D(x, _depth(x), flat, ramp, borderType=border),
     )
 
 
@@ -482,7 +489,9 @@ def _coarse(model, grey, table: _CurveTable, frame: _Frame, levels: np.ndarray,
     else:
         other[:, split:] = np.nan
     other = other.astype(np.float32)
-    ref = _ref_stats(grey[frame.v0 : frame.v1, frame.u0 : frame.u1], settings.window_px)
+    # in float32: the sweep only ranks levels and gives the refinement its start
+    reference = grey[frame.v0 : frame.v1, frame.u0 : frame.u1].astype(np.float32)
+    ref = _ref_stats(reference, settings.window_px)
     shape = (frame.v1 - frame.v0, frame.u1 - frame.u0)
     # streamed over the levels (no (K, h, w) volume): the best level so far, its score and
     # its neighbours' scores, as an argmax over the volume would give them
@@ -497,7 +506,7 @@ def _coarse(model, grey, table: _CurveTable, frame: _Frame, levels: np.ndarray,
         my = np.nan_to_num(plane[..., 1], nan=-1e6)
         warped = cv2.remap(other, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                            borderValue=float("nan"))  # fmt: skip
-        score = _zncc(ref, warped.astype(np.float64), settings.window_px)[0]
+        score = _zncc(ref, warped, settings.window_px)[0]
         after_best = best == k - 1
         y_plus[after_best] = score[after_best]
         key = np.nan_to_num(score, nan=-2.0)
@@ -1087,7 +1096,9 @@ def _check_consistency(model, grey, status, q_r, w, levels, settings: DenseSetti
     rv0 = int(max(0, np.floor(q_ok[:, 1].min()) - r - 1))
     rv1 = int(min(height, np.ceil(q_ok[:, 1].max()) + r + 2))
     frame = _Frame(ru0, rv0, ru1, rv1, Half.RIGHT)
-    table = _curve_table(model, frame, levels, settings.grid_px)
+    # the sweep from the right only has to agree within levels about 1 px apart: its
+    # planes from a grid twice as coarse (a quarter of the projections) will do
+    table = _curve_table(model, frame, levels, 2 * settings.grid_px)
     back = _coarse(model, grey, table, frame, levels, settings)
     q_safe = np.nan_to_num(q_r, nan=0.0)
     iu = np.clip(np.rint(q_safe[..., 0]).astype(np.intp) - ru0, 0, ru1 - ru0 - 1)
