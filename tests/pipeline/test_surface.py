@@ -50,6 +50,13 @@ def test_the_depth_of_a_textured_plane_is_stored_with_its_point_cloud(session, t
     assert f"element vertex {doc['measured']}" in header
     with open_session(session) as s:
         assert s.record_names(SURFACE_RECORD) == [doc["record"]]
+        record = s.record(SURFACE_RECORD, doc["record"])
+    # each depth says which rung it comes from; a pixel without one has none
+    measured = np.isfinite(record.arrays["depth"])
+    window, prefilter = record.arrays["window"], record.arrays["prefilter"]
+    assert set(np.unique(window[measured])) <= {15, 31, 63}
+    assert set(np.unique(prefilter[measured])) <= {0.0, record.attrs["prefilter_px"]}
+    assert not window[~measured].any() and not prefilter[~measured].any()
 
 
 @pytest.mark.parametrize(
