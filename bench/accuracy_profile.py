@@ -12,7 +12,7 @@ the plane) lies within its 2 sigma of the true profile's extreme over the sample
 depth, and of the deepest and highest samples against the truth at their own pixel.
 
 Planted pits (issue 20): ``--pits`` per scene image, each rendered alone into the scene
-image's pose with the scene set's sensor noise (the demo image plus the pit). The rule
+image's pose with the scene set's sensor noise (the scene image plus the pit). The rule
 (seeded, ``--seed``): radius and depth uniform in :data:`PIT_RADIUS_MM` and
 :data:`PIT_DEPTH_MM`; the centre uniform within :data:`PIT_REACH_MM` on the surface of the
 point the left half sees at the centroid of the pixels both halves see, weighted by the
@@ -23,6 +23,9 @@ rim, both seen by the right half. Measured as above (dense surface, best-fit pla
 the ends, profile); truth: the exact pitted surface through the truth optics against the
 same construction on the true points; the profile's deepest sample against the true
 profile's deepest, within its 2 sigma.
+With ``--designs WORK`` the same on random probe designs: each design's calibrated session
+``WORK/design_NNN.h5`` and the first ``--images`` of its scene set ``WORK/design_NNN_scene``
+(as ``bench/accuracy_dense.py --designs`` reads them), the truth from the design's preset.
 Writes the ``profile`` section of docs/accuracy.md unless ``--no-write``; target: issue 20.
 """
 
@@ -31,6 +34,7 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -38,7 +42,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "src"))
 
-from _common import ACCURACY, Report, Target, script_parser, window_range  # noqa: E402
+from _common import (  # noqa: E402
+    ACCURACY,
+    Report,
+    Target,
+    parse_seeds,
+    script_parser,
+    window_range,
+)
 
 EXTREME_TARGET = Target(
     "profile extremes within 2 sigma of the true extreme", ">=", 90.0, " %", "issue 20"
@@ -154,8 +165,10 @@ def _plant_pits(rng, preset, target, grey, mask: np.ndarray, window: int, count:
     raise RuntimeError("no pit found by the rule where both halves see the surface")
 
 
-def _pit_rows(cm, preset, shots, images, settings, per_image: int, seed: int):
-    """The planted-pit cases: table rows, within-2-sigma flags and refusals."""
+def _pit_rows(cm, preset, shots, images, settings, per_image: int, seed: int,
+              scene_seed: int = SCENE_SEED, label: str = ""):  # fmt: skip
+    """The planted-pit cases: table rows, within-2-sigma flags and refusals (``label``
+    before each image's name; ``scene_seed``: the scene set's, for its sensor noise)."""
     from endomeasure.pipeline.simulate import _noise_rng
     from endomeasure.simulate.render import render
 
@@ -168,11 +181,11 @@ def _pit_rows(cm, preset, shots, images, settings, per_image: int, seed: int):
                               settings.window_px, per_image)  # fmt: skip
         for k, (pit, a, b, windows) in enumerate(planted):
             target = shot.target.with_pits(pit[None])
-            image = render(preset, target, rng=_noise_rng(SCENE_SEED, "scene", shot.index)).image
+            image = render(preset, target, rng=_noise_rng(scene_seed, "scene", shot.index)).image
             try:
                 prof, truth = _case(cm, preset, target, image, a, b, settings)
             except Exception as exc:  # a refusal is a result: counted, not hidden
-                refused.append(f"{name} pit {k}: {exc}")
+                refused.append(f"{label}{name} pit {k}: {exc}")
                 continue
             valid = np.isfinite(prof.samples.height)
             e = prof.deepest
@@ -181,8 +194,8 @@ def _pit_rows(cm, preset, shots, images, settings, per_image: int, seed: int):
             ratio.append(e.height_mm / true_deepest)
             bottom = _left_pixels(preset, shot.target, pit[:1], pit[1:2])[0]
             rows.append(
-                f"| {name} | {k} | {pit[0]:+.2f}, {pit[1]:+.2f} | {pit[2]:.2f} | {pit[3]:.3f} | "
-                f"{windows:.2f} | {a[0]:.0f},{a[1]:.0f} -> {b[0]:.0f},{b[1]:.0f} | "
+                f"| {label}{name} | {k} | {pit[0]:+.2f}, {pit[1]:+.2f} | {pit[2]:.2f} | "
+                f"{pit[3]:.3f} | {windows:.2f} | {a[0]:.0f},{a[1]:.0f} -> {b[0]:.0f},{b[1]:.0f} | "
                 f"{100 * prof.coverage:.0f} | {e.height_mm:+.3f} | {e.sigma_mm:.3f} | "
                 f"{true_deepest:+.3f} | {100 * ratio[-1]:.0f} | "
                 f"{(e.height_mm - true_deepest) / e.sigma_mm:+.2f} | {'yes' if ok[-1] else 'no'} | "
@@ -224,40 +237,9 @@ def _case(cm, preset, target, image, a, b, settings):
     return prof, truth
 
 
-def main() -> int:
-    parser = script_parser(__doc__, seed=0)
-    parser.add_argument("--session", type=Path, default=ROOT / "out" / "demo" / "demo.h5")
-    parser.add_argument("--paths", type=int, default=8, help="random paths per scene image")
-    parser.add_argument("--pits", type=int, default=3, help="planted pits per scene image")
-    parser.add_argument("--window-range", type=window_range, default=None,
-                        help="refinement windows LO,HI px (default: profiles')")  # fmt: skip
-    args = parser.parse_args()
-    import shutil
-    import tempfile
-
-    from endomeasure import defaults
-    from endomeasure.io.records import load_calibrated_model
-    from endomeasure.io.session import open_session
-    from endomeasure.measure.dense import DenseSettings
-    from endomeasure.pipeline.measure import search_depths
-    from endomeasure.simulate.preset import load_preset
-    from endomeasure.simulate.scenes import plan_set
-
-    paths = 2 if args.quick else args.paths
-    preset = load_preset("default")
-    shots = {s.name: s for s in plan_set(preset, "scene", 0)}
-    with tempfile.TemporaryDirectory() as tmp:  # read a copy: the demo session stays as it is
-        copy = Path(tmp) / "demo.h5"
-        shutil.copyfile(args.session, copy)
-        with open_session(copy) as reader:
-            cm = load_calibrated_model(reader, "raytrace", copy)
-            images = {n: reader.image(n) for n in sorted(shots) if n in reader.image_names()}
-    images = {n: im[..., :3].mean(axis=2) if im.ndim == 3 else im for n, im in images.items()}
-    windows = args.window_range or defaults.PROFILE_WINDOW_RANGE_PX
-    settings = DenseSettings(  # as `measure --kind profile`
-        depth_range_mm=search_depths(cm), window_range_px=windows
-    )
-    rng = np.random.default_rng(args.seed)
+def _paths(label, cm, preset, shots, images, settings, rng, paths: int):
+    """The random paths' cases of one scene set: table rows, the extremes' and the deepest
+    and highest samples' within-2-sigma flags, refusals and seconds per profile."""
     rows, extreme_ok, own_ok, refused, seconds = [], [], [], [], []
     for name, grey in images.items():
         mask = _seen_mask(preset, shots[name].target, cm.model.config.split)
@@ -267,7 +249,7 @@ def main() -> int:
             try:
                 prof, truth = _case(cm, preset, shots[name].target, grey, a, b, settings)
             except Exception as exc:  # a refusal is a result: counted, not hidden
-                refused.append(f"{name} path {k}: {exc}")
+                refused.append(f"{label}{name} path {k}: {exc}")
                 continue
             seconds.append(time.perf_counter() - start)
             valid = np.isfinite(prof.samples.height)
@@ -277,14 +259,118 @@ def main() -> int:
             for x in (prof.deepest, prof.highest):
                 own_ok.append(abs(x.height_mm - truth[x.index]) <= 2 * x.sigma_mm)
             rows.append(
-                f"| {name} | {k} | {a[0]:.0f},{a[1]:.0f} -> {b[0]:.0f},{b[1]:.0f} | "
+                f"| {label}{name} | {k} | {a[0]:.0f},{a[1]:.0f} -> {b[0]:.0f},{b[1]:.0f} | "
                 f"{100 * prof.coverage:.0f} | {e.height_mm:+.3f} | {e.sigma_mm:.3f} | "
                 f"{true_extreme:+.3f} | {(e.height_mm - true_extreme) / e.sigma_mm:+.2f} |"
             )
+    return rows, extreme_ok, own_ok, refused, seconds
+
+
+class _SceneSet(NamedTuple):
+    """A calibration and the scene images it measures, with their truth."""
+
+    label: str  # before each image's name in the tables
+    cm: object
+    preset: object
+    shots: dict
+    images: dict  # name -> grey image
+    scene_seed: int
+
+
+def _default_set(session: Path) -> _SceneSet:
+    import shutil
+    import tempfile
+
+    from endomeasure.io.records import load_calibrated_model
+    from endomeasure.io.session import open_session
+    from endomeasure.simulate.preset import load_preset
+    from endomeasure.simulate.scenes import plan_set
+
+    preset = load_preset("default")
+    shots = {s.name: s for s in plan_set(preset, "scene", SCENE_SEED)}
+    with tempfile.TemporaryDirectory() as tmp:  # read a copy: the demo session stays as it is
+        copy = Path(tmp) / "demo.h5"
+        shutil.copyfile(session, copy)
+        with open_session(copy) as reader:
+            cm = load_calibrated_model(reader, "raytrace", copy)
+            images = {n: reader.image(n) for n in sorted(shots) if n in reader.image_names()}
+    images = {n: im[..., :3].mean(axis=2) if im.ndim == 3 else im for n, im in images.items()}
+    return _SceneSet("", cm, preset, shots, images, SCENE_SEED)
+
+
+def _design_set(work: Path, seed: int, count: int) -> _SceneSet | None:
+    """A random design's calibration and its first ``count`` scene images (as
+    ``bench/accuracy_dense.py --designs`` reads them); None without either."""
+    import json
+
+    import cv2
+
+    from endomeasure.errors import EndomeasureError
+    from endomeasure.io.records import load_calibrated_model
+    from endomeasure.io.session import open_session
+    from endomeasure.simulate.preset import load_preset
+    from endomeasure.simulate.scenes import plan_set
+
+    session, folder = work / f"design_{seed:03d}.h5", work / f"design_{seed:03d}_scene"
+    if not (folder / "simulation.json").exists():
+        return None
+    try:
+        with open_session(session) as reader:
+            cm = load_calibrated_model(reader, "raytrace", session)
+    except (EndomeasureError, OSError):
+        return None
+    preset = load_preset(folder / "preset.json")
+    scene_seed = json.loads((folder / "simulation.json").read_text())["seed"]
+    shots = {s.name: s for s in plan_set(preset, "scene", scene_seed)[:count]}
+    images = {n: cv2.imread(str(folder / "scene" / f"{n}.png"), cv2.IMREAD_GRAYSCALE)
+              for n in shots}  # fmt: skip
+    images = {n: im.astype(np.float64) for n, im in images.items() if im is not None}
+    return _SceneSet(f"design {seed} / ", cm, preset, shots, images, scene_seed)
+
+
+def main() -> int:
+    parser = script_parser(__doc__, seed=0)
+    parser.add_argument("--session", type=Path, default=ROOT / "out" / "demo" / "demo.h5")
+    parser.add_argument("--paths", type=int, default=8, help="random paths per scene image")
+    parser.add_argument("--pits", type=int, default=3, help="planted pits per scene image")
+    parser.add_argument("--window-range", type=window_range, default=None,
+                        help="refinement windows LO,HI px (default: profiles')")  # fmt: skip
+    parser.add_argument("--designs", type=Path, default=None, help="random designs' WORK folder")
+    parser.add_argument("--design-seeds", default="1-12", help="e.g. 1-12 or 1,5")
+    parser.add_argument("--images", type=int, default=1, help="scene images per design")
+    args = parser.parse_args()
+
+    from endomeasure import defaults
+    from endomeasure.measure.dense import DenseSettings
+    from endomeasure.pipeline.measure import search_depths
+
+    paths = 2 if args.quick else args.paths
     pits = 1 if args.quick else args.pits
-    pit_rows, pit_ok, pit_ratio, pit_refused = _pit_rows(
-        cm, preset, shots, images, settings, pits, args.seed
-    )
+    windows = args.window_range or defaults.PROFILE_WINDOW_RANGE_PX
+    sets = [_default_set(args.session)]
+    if args.designs is not None:
+        for seed in parse_seeds(args.design_seeds):
+            found = _design_set(args.designs, seed, args.images)
+            if found is not None:
+                sets.append(found)
+    rng = np.random.default_rng(args.seed)
+    rows, extreme_ok, own_ok, refused, seconds = [], [], [], [], []
+    pit_rows, pit_ok, pit_ratio, pit_refused = [], [], [], []
+    for one in sets:
+        settings = DenseSettings(  # as `measure --kind profile`
+            depth_range_mm=search_depths(one.cm), window_range_px=windows
+        )
+        for into, got in zip((rows, extreme_ok, own_ok, refused, seconds),
+                             _paths(one.label, one.cm, one.preset, one.shots, one.images,
+                                    settings, rng, paths), strict=True):  # fmt: skip
+            into.extend(got)
+        got = _pit_rows(one.cm, one.preset, one.shots, one.images, settings, pits, args.seed,
+                        one.scene_seed, one.label)  # fmt: skip
+        for into, part in zip((pit_rows, pit_ok, pit_ratio, pit_refused), got, strict=True):
+            into.extend(part)
+        print(f"{one.label or 'default preset'}: {len(rows)} profiles, {len(pit_ok)} pits",
+              file=sys.stderr, flush=True)  # fmt: skip
+    pit_ratio = np.array(pit_ratio)
     pit_share = 100 * float(np.mean(pit_ok)) if pit_ok else float("nan")
     share = 100 * float(np.mean(extreme_ok)) if extreme_ok else float("nan")
     own = 100 * float(np.mean(own_ok)) if own_ok else float("nan")
@@ -295,11 +381,15 @@ def main() -> int:
                f"--paths {args.paths} --pits {args.pits} --seed {args.seed}")  # fmt: skip
     if args.window_range is not None:
         command += f" --window-range {windows[0]},{windows[1]}"
+    if args.designs is not None:
+        command += f" --designs {args.designs} --design-seeds {args.design_seeds}"
+        command += f" --images {args.images}"
     body = "\n".join([
         "## Depth profiles across the cylinder",
         "",
         f"`{command}` (the demo's raytrace calibration of the default preset, its scene "
-        "images; random straight paths of "
+        "images; with `--designs`, each random design's own calibration and first scene "
+        "images too; random straight paths of "
         f"{LENGTH_PX[0]}-{LENGTH_PX[1]} px whose ends and middle the right half sees; the "
         "reference plane: the best fit near the path's ends, as `measure --kind profile` "
         "without `--ref`). Truth: the truth optics' rays against the exact posed cylinder, "
@@ -319,7 +409,7 @@ def main() -> int:
         "### Planted pits of known depth",
         "",
         f"{pits} pits per scene image, each rendered alone into the image's pose with the "
-        "scene set's sensor noise (the demo image plus the pit; `MetalCylinder.pits`, a "
+        "scene set's sensor noise (the scene image plus the pit; `MetalCylinder.pits`, a "
         "smooth bowl `depth (1 - (r/R)^2)^2` along the inward normal). Placed by a seeded "
         f"rule: radius {PIT_RADIUS_MM[0]}-{PIT_RADIUS_MM[1]} mm, depth "
         f"{PIT_DEPTH_MM[0]}-{PIT_DEPTH_MM[1]} mm, centre within {PIT_REACH_MM} mm (on the "
