@@ -172,7 +172,7 @@ class NoiseTransfer(NamedTuple):
     the interpolant's derivative along any unit direction in 2-D (per px^2). Without a
     prefilter the gain is 1 at a pixel and 0.756 half-way, the derivative's about 2.16;
     a Gaussian prefilter of 1 px cuts both (the noise it leaves is correlated, which
-    :func:`gain` does not describe: it gives each sample's variance alone).
+    :meth:`gain` does not describe: it gives each sample's variance alone).
     """
 
     kernel: tuple
