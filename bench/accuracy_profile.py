@@ -368,7 +368,8 @@ def main() -> int:
                         one.scene_seed, one.label)  # fmt: skip
         for into, part in zip((pit_rows, pit_ok, pit_ratio, pit_refused), got, strict=True):
             into.extend(part)
-        print(f"{one.label or 'default preset'}: {len(rows)} profiles, {len(pit_ok)} pits",
+        print(f"{one.label.rstrip(' /') or 'default preset'}: {len(rows)} profiles, "
+              f"{len(pit_ok)} pits so far",
               file=sys.stderr, flush=True)  # fmt: skip
     pit_ratio = np.array(pit_ratio)
     pit_share = 100 * float(np.mean(pit_ok)) if pit_ok else float("nan")
