@@ -66,8 +66,8 @@ extreme, the bottom of a pit or dent, where a window wider than the feature aver
 away. The window choice stops growing where a larger window disagrees beyond the smaller
 ones' noise, but a pit a few windows wide can hide inside that noise: compare
 ``bench/accuracy_profile.py --no-write --window-range 15,63`` with the profile section of
-``docs/accuracy.md`` (the default preset's planted pits, radius 11-33 px; not yet
-checked on random designs)."""
+``docs/accuracy.md`` (the default preset's planted pits, radius 11-33 px, and the random
+designs' with ``--designs``)."""
 
 ZONE_MM = 5.0
 """Width of the distance zones of the board test (mm): the paper's Fig. 4 uses zones of
