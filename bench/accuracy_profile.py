@@ -177,8 +177,12 @@ def _pit_rows(cm, preset, shots, images, settings, per_image: int, seed: int,
     for name in images:
         shot = shots[name]
         mask = _seen_mask(preset, shot.target, cm.model.config.split)
-        planted = _plant_pits(rng, preset, shot.target, images[name][:, : mask.shape[1]], mask,
-                              settings.window_px, per_image)  # fmt: skip
+        try:
+            planted = _plant_pits(rng, preset, shot.target, images[name][:, : mask.shape[1]],
+                                  mask, settings.window_px, per_image)  # fmt: skip
+        except RuntimeError as exc:  # a scene with no room for the rule: said, not hidden
+            refused.append(f"{label}{name}: {exc}")
+            continue
         for k, (pit, a, b, windows) in enumerate(planted):
             target = shot.target.with_pits(pit[None])
             image = render(preset, target, rng=_noise_rng(scene_seed, "scene", shot.index)).image
