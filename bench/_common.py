@@ -35,6 +35,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "docs" / "benchmarks.md"
@@ -116,6 +117,50 @@ def parse_seeds(text: str) -> list[int]:
         lo, _, hi = part.partition("-")
         out.extend(range(int(lo), int(hi or lo) + 1))
     return out
+
+
+class DesignScenes(NamedTuple):
+    """A random design's calibration and the first images of its scene set."""
+
+    cm: object  # the calibrated ``raytrace`` model, with its misfit
+    preset: object  # the design's preset (its truth optics)
+    scene_seed: int  # the scene set's seed (its poses and sensor noise)
+    shots: list  # the scene set's shots that have an image, in order
+    images: dict  # shot name -> grey image (uint8)
+
+
+def design_scenes(work: Path, seed: int, count: int) -> DesignScenes | None:
+    """Design ``seed``'s calibrated session ``work/design_NNN.h5`` (from
+    ``bench/accuracy_designs.py``) and the first ``count`` images of its scene set
+    ``work/design_NNN_scene`` (``endomeasure simulate ... --set scene``); None without a
+    usable calibration or a scene set."""
+    import json
+
+    import cv2
+
+    from endomeasure.errors import EndomeasureError
+    from endomeasure.io.session import open_session
+    from endomeasure.pipeline import calibrated_model
+    from endomeasure.simulate.preset import load_preset
+    from endomeasure.simulate.scenes import plan_set
+
+    session, folder = work / f"design_{seed:03d}.h5", work / f"design_{seed:03d}_scene"
+    if not (folder / "simulation.json").exists():
+        return None
+    try:
+        with open_session(session) as reader:
+            cm = calibrated_model(reader, "raytrace", session)
+    except (EndomeasureError, OSError):
+        return None
+    preset = load_preset(folder / "preset.json")
+    scene_seed = json.loads((folder / "simulation.json").read_text())["seed"]
+    shots, images = [], {}
+    for shot in plan_set(preset, "scene", scene_seed)[:count]:
+        image = cv2.imread(str(folder / "scene" / f"{shot.name}.png"), cv2.IMREAD_GRAYSCALE)
+        if image is not None:
+            shots.append(shot)
+            images[shot.name] = image
+    return DesignScenes(cm, preset, scene_seed, shots, images)
 
 
 def script_parser(

@@ -15,7 +15,6 @@ designs: each design's calibrated session ``WORK/design_NNN.h5`` and scene set
 
 from __future__ import annotations
 
-import json
 import resource
 import sys
 import time
@@ -32,6 +31,7 @@ from _common import (  # noqa: E402
     ACCURACY,
     Report,
     Target,
+    design_scenes,
     parse_seeds,
     script_parser,
     window_range,
@@ -190,32 +190,12 @@ def default_frames(session: Path, settings_for) -> list[Frame]:
 def design_frames(work: Path, seed: int, images: int, settings_for) -> list[Frame]:
     """The first ``images`` scene images of one random design (none: no usable
     calibration or no scene set)."""
-    import cv2
-
-    from endomeasure.errors import EndomeasureError
-    from endomeasure.io.session import open_session
-    from endomeasure.pipeline import calibrated_model
-    from endomeasure.simulate.preset import load_preset
-    from endomeasure.simulate.scenes import plan_set
-
-    session, folder = work / f"design_{seed:03d}.h5", work / f"design_{seed:03d}_scene"
-    try:
-        with open_session(session) as reader:
-            cm = calibrated_model(reader, "raytrace", session)
-    except (EndomeasureError, OSError):
+    design = design_scenes(work, seed, images)
+    if design is None:
         return []
-    if not (folder / "simulation.json").exists():
-        return []
-    preset = load_preset(folder / "preset.json")
-    simulated_seed = json.loads((folder / "simulation.json").read_text())["seed"]
-    settings = settings_for(cm)
-    out = []
-    for shot in plan_set(preset, "scene", simulated_seed)[:images]:
-        image = cv2.imread(str(folder / "scene" / f"{shot.name}.png"), cv2.IMREAD_GRAYSCALE)
-        if image is not None:
-            out.append(frame(f"design {seed} / {shot.name}", cm, preset, shot.target, image,
-                             settings))  # fmt: skip
-    return out
+    settings = settings_for(design.cm)
+    return [frame(f"design {seed} / {shot.name}", design.cm, design.preset, shot.target,
+                  design.images[shot.name], settings) for shot in design.shots]  # fmt: skip
 
 
 def _summary(frames: list[Frame]) -> tuple[float, float, float]:

@@ -46,6 +46,7 @@ from _common import (  # noqa: E402
     ACCURACY,
     Report,
     Target,
+    design_scenes,
     parse_seeds,
     script_parser,
     window_range,
@@ -303,33 +304,14 @@ def _default_set(session: Path) -> _SceneSet:
 
 
 def _design_set(work: Path, seed: int, count: int) -> _SceneSet | None:
-    """A random design's calibration and its first ``count`` scene images (as
-    ``bench/accuracy_dense.py --designs`` reads them); None without either."""
-    import json
-
-    import cv2
-
-    from endomeasure.errors import EndomeasureError
-    from endomeasure.io.records import load_calibrated_model
-    from endomeasure.io.session import open_session
-    from endomeasure.simulate.preset import load_preset
-    from endomeasure.simulate.scenes import plan_set
-
-    session, folder = work / f"design_{seed:03d}.h5", work / f"design_{seed:03d}_scene"
-    if not (folder / "simulation.json").exists():
+    """A random design's calibration and its first ``count`` scene images
+    (:func:`design_scenes`); None without either."""
+    design = design_scenes(work, seed, count)
+    if design is None:
         return None
-    try:
-        with open_session(session) as reader:
-            cm = load_calibrated_model(reader, "raytrace", session)
-    except (EndomeasureError, OSError):
-        return None
-    preset = load_preset(folder / "preset.json")
-    scene_seed = json.loads((folder / "simulation.json").read_text())["seed"]
-    shots = {s.name: s for s in plan_set(preset, "scene", scene_seed)[:count]}
-    images = {n: cv2.imread(str(folder / "scene" / f"{n}.png"), cv2.IMREAD_GRAYSCALE)
-              for n in shots}  # fmt: skip
-    images = {n: im.astype(np.float64) for n, im in images.items() if im is not None}
-    return _SceneSet(f"design {seed} / ", cm, preset, shots, images, scene_seed)
+    images = {n: im.astype(np.float64) for n, im in design.images.items()}
+    return _SceneSet(f"design {seed} / ", design.cm, design.preset,
+                     {s.name: s for s in design.shots}, images, design.scene_seed)  # fmt: skip
 
 
 def main() -> int:

@@ -777,13 +777,16 @@ def dense_surface(
     left = _Frame(fu0, fv0, fu1, fv1, Half.LEFT)
     levels = _levels(model, left, settings)
     table = _curve_table(model, left, levels, settings.grid_px)
+    rungs = [rung for ladder in settings.ladders() for rung in ladder]
+    blurs = {rung.blur for rung in rungs} | {settings.prefilter_px}
+    filtered = {blur: _prefiltered(grey, split, blur) for blur in blurs}
     # the sweep only gives the refinement its start: on the prefiltered halves, where
     # faint texture still finds its level
-    swept = _prefiltered(grey, split, settings.prefilter_px)
+    swept = filtered[settings.prefilter_px]
     coarse = _coarse(model, swept, table, left, levels, settings)
 
-    rungs = [rung for ladder in settings.ladders() for rung in ladder]
-    images = {blur: _image(grey, split, blur, noise, left) for blur in {r.blur for r in rungs}}
+    images = {blur: _image(filtered[blur], split, blur, noise, left)
+              for blur in {r.blur for r in rungs}}  # fmt: skip
     refs = {rung: _ref_stats(images[rung.blur].grey, rung.size) for rung in rungs}
     match = _adaptive_refinement(table, coarse.w, refs, images, levels, settings)
     w, sigma_w, q_r, status = match.w, match.sigma_w, match.right, match.status
@@ -967,17 +970,15 @@ def _prefiltered(grey: np.ndarray, split: int, blur: float) -> np.ndarray:
 
 
 def _image(grey: np.ndarray, split: int, blur: float, noise, frame: _Frame) -> _Image:
-    """The :class:`_Image` of the whole frame ``grey`` prefiltered by a Gaussian of
-    ``blur`` px (:func:`_prefiltered`)."""
+    """The :class:`_Image` of the whole frame ``grey``, already prefiltered by a Gaussian
+    of ``blur`` px (:func:`_prefiltered`)."""
     height, width = grey.shape
-    taps = gaussian_taps(blur)
-    grey = _prefiltered(grey, split, blur)
     coeffs, origin = spline_coefficients(
         grey, np.array([[split, 0], [width - 1, height - 1]], float), cols=(split, width - 1)
     )
     return _Image(grey[frame.v0 : frame.v1, frame.u0 : frame.u1],
                   _RightHalf(coeffs, origin, split, width, height), noise,
-                  noise_transfer(taps))  # fmt: skip
+                  noise_transfer(gaussian_taps(blur)))  # fmt: skip
 
 
 def _match_at(table: _CurveTable, w, ref, image: _Image, window: int):
