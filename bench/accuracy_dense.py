@@ -71,7 +71,7 @@ class Frame(NamedTuple):
     match_errors: np.ndarray  # |z - z of the true match under the model| / z
     match_within: np.ndarray  # bool: inside the match's own 2 sigma
     calibration_bias: float  # median (z of the true match under the model - z) / z
-    calibration_dz: tuple  # (near, far) median z error of true points, mm (_calibration_dz)
+    calibration_dz: tuple  # near, far z error of true points; their sigma, mm (_calibration_dz)
 
 
 def frame(label, cm, preset, target, image, settings) -> Frame:
@@ -105,13 +105,16 @@ def frame(label, cm, preset, target, image, settings) -> Frame:
                  match_within, bias, _calibration_dz(cm, preset))  # fmt: skip
 
 
-def _calibration_dz(cm, preset) -> tuple[float, float]:
+def _calibration_dz(cm, preset) -> tuple[float, ...]:
     """The calibrated model's z error (mm, median over a grid of the left half's field)
-    of true points at the nearest and the farthest depth the calibration saw the board:
-    each point's true pixels in both halves (the truth optics) triangulated with the
-    model. An error proportional to z is a scale error; one constant in mm is the model
-    frame's origin set off the truth's along the axis, which no length sees."""
+    of true points at the nearest and the farthest depth the calibration saw the board,
+    and the calibration's own sigma of that z (median, mm): each point's true pixels in
+    both halves (the truth optics) triangulated with the model; the sigma by the
+    unscented transform of the calibration covariance, as every depth's share. An error
+    proportional to z is a scale error; one constant in mm is the model frame's origin
+    set off the truth's along the axis, which no length sees."""
     from endomeasure.conventions import Half
+    from endomeasure.measure.dense import _calibration_sigma
     from endomeasure.solvers.triangulate import triangulate
 
     truth, model = preset.truth_optics, cm.model
@@ -120,15 +123,18 @@ def _calibration_dz(cm, preset) -> tuple[float, float]:
     left = np.stack([gu, gv], -1).reshape(-1, 2)
     rays = truth.rays(left, Half.LEFT)
     near, far = cm.depth_range_mm or (np.nan, np.nan)
-    out = []
+    errors, sigmas = [], []
     for z in (near, far):
         t = (z - rays.origins[:, 2]) / rays.directions[:, 2]
         right = truth.project(rays.origins + t[:, None] * rays.directions, Half.RIGHT)
         seen = right.status == 0
         tri = triangulate(model, left[seen], right.pixels[seen])
         ok = tri.status == 0
-        out.append(float(np.median(tri.points[ok, 2] - z)) if ok.any() else np.nan)
-    return out[0], out[1]
+        errors.append(float(np.median(tri.points[ok, 2] - z)) if ok.any() else np.nan)
+        sigma = (_calibration_sigma(model, cm.param_cov, None, left[seen][ok], right.pixels[seen][ok])
+                 if ok.any() and cm.param_cov is not None else np.full(1, np.nan))  # fmt: skip
+        sigmas.append(float(np.median(sigma)))
+    return errors[0], errors[1], sigmas[0], sigmas[1]
 
 
 def _split_budget(cm, misfit, surface, ok, truth, true_right):
@@ -166,7 +172,8 @@ def _row(f: Frame) -> str:
         f"{pct(f.errors, np.median, 3)} | {pct(f.within, np.mean, 1)} | "
         f"{pct(f.sigma, np.median, 3)} | {pct(f.match_errors, np.median, 3)} | "
         f"{pct(f.match_within, np.mean, 1)} | {100 * f.calibration_bias:+.3f} | "
-        f"{f.calibration_dz[0]:+.3f} / {f.calibration_dz[1]:+.3f} | {f.seconds:.1f} | "
+        f"{f.calibration_dz[0]:+.3f} +- {f.calibration_dz[2]:.3f} / "
+        f"{f.calibration_dz[1]:+.3f} +- {f.calibration_dz[3]:.3f} | {f.seconds:.1f} | "
         + ", ".join(f"{k} {v}" for k, v in f.refused.items() if v)
         + " |"
     )
@@ -285,7 +292,9 @@ def main() -> int:
         "what the calibration's covariance and misfit must hold. The *calibration's z "
         "error* at the nearest and farthest depth its boards were seen at (true points "
         "over the field, triangulated from their true pixels): constant in mm, it is the "
-        "model frame's origin set off the truth's along the axis, which no length sees.",
+        "model frame's origin set off the truth's along the axis, which no length sees; "
+        "the +- is the calibration's own 1-sigma of that z (its covariance, with the "
+        "extensions the fit held but cannot rule out: docs/models.md).",
         "",
         "| images | frames | depth for % | median abs z error % of z | inside 2 sigma % | "
         "matching alone: median % of z | matching alone: inside its 2 sigma % |",
@@ -294,8 +303,8 @@ def main() -> int:
         "",
         "| image | z mm | depth for % | median abs z error % of z | inside 2 sigma % | "
         "median predicted sigma % of z | matching alone: median % of z | matching alone: "
-        "inside its 2 sigma % | calibration's depth bias % of z | calibration's z error at "
-        "its nearest / farthest board depth, mm | s | counted pixels refused |",
+        "inside its 2 sigma % | calibration's depth bias % of z | calibration's z error "
+        "+- its sigma at its nearest / farthest board depth, mm | s | counted pixels refused |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
         *[_row(f) for f in everything],
         "",

@@ -1150,6 +1150,13 @@ def _render_calibration(console: Console, report: Any) -> None:
                 console.print(f"{s.name} {s.verdict}: {reason}", markup=False)
             for line in s.selection:
                 console.print(f"{s.name} lens/model terms: {line}", markup=False)
+            if s.uncertain_std:
+                held = ", ".join(f"{n} +-{v:.2g}" for n, v in s.uncertain_std.items())
+                console.print(
+                    f"{s.name} terms held by the fit but not ruled out by the data "
+                    f"(every measurement's +- varies them): {held}",
+                    markup=False,
+                )
     for s in models.values():
         table = Table(title=f"{s.name} parameters (+- 1 sigma)", title_justify="left")
         table.add_column("parameter")

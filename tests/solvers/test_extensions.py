@@ -91,3 +91,37 @@ def test_the_linearised_gain_predicts_the_refined_one(extra):
         if actual > threshold:  # a group the criterion keeps is never screened out
             assert predicted > SCREEN_FRACTION * threshold, (group, predicted, actual)
         assert actual < predicted / SCREEN_FRACTION + 1.0, (group, predicted, actual)
+
+
+def test_a_held_pupil_the_data_cannot_rule_out_is_in_the_depth_uncertainty():
+    """A moving entrance pupil too small for the criterion to free trades against the
+    face distances: the fit holds it at zero and puts the model frame's origin off the
+    truth's along the axis, far beyond the fitted parameters' own sigma. The covariance a
+    measurement uses (``uncertainty_covariance``, with the held groups free) holds that
+    error; the fit's own covariance does not."""
+    from endomeasure.measure.dense import _calibration_sigma
+    from endomeasure.solvers.triangulate import triangulate
+
+    truth = perturbed_raytrace_truth().with_values({"e1": 0.2})
+    views, boards = _views(truth, 3)
+    cfg = truth.config
+    result = calibrate("raytrace", views, boards, cfg.image_size, cfg.split)
+    assert "e1" not in result.extensions and {"e1", "e2"} <= set(result.uncertain)
+    model = result.uncertainty_model
+    assert model.params.tolist() == result.model.params.tolist()
+    assert int(model.free_mask.sum()) == result.measurement_covariance.shape[0]
+    gu, gv = np.meshgrid(np.linspace(0.15, 0.9, 6) * cfg.split,
+                         np.linspace(0.15, 0.85, 5) * cfg.image_size[1])  # fmt: skip
+    left = np.stack([gu, gv], -1).reshape(-1, 2)
+    rays = truth.rays(left, Half.LEFT)
+    for z in (10.0, 20.0):
+        t = (z - rays.origins[:, 2]) / rays.directions[:, 2]
+        right = truth.project(rays.origins + t[:, None] * rays.directions, Half.RIGHT)
+        ok = right.status == 0
+        error = np.median(triangulate(result.model, left[ok], right.pixels[ok]).points[:, 2] - z)
+        fit_sigma = _calibration_sigma(result.model, result.covariance, None, left[ok],
+                                       right.pixels[ok])  # fmt: skip
+        sigma = _calibration_sigma(model, result.measurement_covariance, None, left[ok],
+                                   right.pixels[ok])  # fmt: skip
+        assert abs(error) > 3 * np.median(fit_sigma), z
+        assert abs(error) < 2 * np.median(sigma), z

@@ -85,6 +85,8 @@ def calibration_record(result, name: str | None = None) -> ModelRecord:
     }
     if result.obs_covariance is not None:
         arrays["obs_covariance"] = result.obs_covariance
+    if result.uncertainty_covariance is not None:
+        arrays["uncertainty_covariance"] = result.uncertainty_covariance
     attrs = {
         "kind": "calibration",
         "rms": result.rms,
@@ -99,6 +101,7 @@ def calibration_record(result, name: str | None = None) -> ModelRecord:
         "skipped_images": list(result.skipped_images),
         "extensions": list(result.extensions),
         "selection": list(result.selection),
+        "uncertain": list(result.uncertain),
     }
     verdict = result.verdict
     if verdict is not None:
@@ -201,6 +204,9 @@ class CalibratedModel:
     ----------
     name : str
     model : CameraModel
+        The fitted model; the extensions the fit held but cannot rule out
+        (:attr:`~endomeasure.solvers.calibrate.CalibrationResult.uncertain`) count as
+        free, so that ``param_cov`` varies them too.
     param_cov : ndarray, shape (F, F) or None
         Covariance of the free parameters, in the model's ``free_mask`` order.
     sigma_px : float or None
@@ -293,6 +299,10 @@ def calibrated_from_record(
     model = model_from_record(record)
     cov = None
     stored = _stored_covariance(record)
+    if stored is not None and "uncertainty_covariance" in record.arrays:
+        model = _uncertainty_model(record, model, session)
+        free = [model.PARAM_NAMES[i] for i in np.flatnonzero(model.free_mask)]
+        stored = free, np.asarray(record.arrays["uncertainty_covariance"], dtype=np.float64)
     if stored is not None:
         stored_names, c = stored
         free = [model.PARAM_NAMES[i] for i in np.flatnonzero(model.free_mask)]
@@ -320,6 +330,25 @@ def calibrated_from_record(
     return CalibratedModel(
         name, model, cov, sigma, _calibration_depths(record), stored_verdict(record)[0]
     )
+
+
+def _uncertainty_model(record: ModelRecord, model, session: str | Path):
+    """The stored model with the extensions its fit held but its
+    ``uncertainty_covariance`` holds (attribute ``uncertain``,
+    :attr:`CalibrationResult.uncertain`) counted as free, so that its ``free_mask`` is
+    that covariance's order."""
+    names = record.attrs.get("uncertain", [])
+    if isinstance(names, str):
+        names = [names]
+    names = [str(n) for n in np.asarray(names, dtype=object).reshape(-1)]
+    unknown = sorted(set(names) - set(model.PARAM_NAMES))
+    if unknown:
+        raise BadInputError(
+            f"the stored model {record.name!r} names unknown uncertain parameters {unknown}",
+            path=str(session),
+            hint=f"the session is damaged or crafted; re-run `endomeasure calibrate {session}`",
+        )
+    return model.with_config(fixed=model.config.fixed - set(names)) if names else model
 
 
 _RESIDUAL_ARRAYS = ("obs_board_points", "obs_image", "obs_half", "obs_pixels", "residuals")

@@ -1060,13 +1060,12 @@ def _calibration_sigma(model, param_cov, misfit_cov, left, right) -> np.ndarray:
         if n_par:
             params = np.broadcast_to(model.params, (*lead, model.params.size)).copy()
             params[..., free] = x[..., :n_par]
-        ql = nodes_l[:, None] + x[..., n_par : n_par + 2]
-        qr = nodes_r[:, None] + x[..., n_par + 2 :]
-        tri = triangulate(model, ql, qr, params=params)
+        tri = triangulate(model, x[..., n_par : n_par + 2], x[..., n_par + 2 :], params=params)
         return np.where(tri.status == 0, tri.points[..., 2], np.nan)
 
-    mean = np.concatenate([model.params[free] if n_par else np.zeros(0), np.zeros(4)])
-    x0 = np.broadcast_to(mean, (nodes_l.shape[0], mean.size))
+    # the pixels are inputs, not captured: the transform's retries pass a subset of rows
+    x0 = np.concatenate([np.broadcast_to(model.params[free] if n_par else np.zeros(0),
+                                         (nodes_l.shape[0], n_par)), nodes_l, nodes_r], axis=1)  # fmt: skip
     sigma = unscented(depth_of, x0, block_diag(param_cov, misfit_cov)).std
     good = np.isfinite(sigma)
     if not good.any():

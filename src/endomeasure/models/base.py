@@ -213,6 +213,12 @@ class CameraModel(abc.ABC):
     """Groups of ``DEFAULT_FIXED`` parameters that calibration may free when the data
     call for them (tried in this order, each kept only if held-out images or the
     information criterion say it helps; see ``solvers.calibrate``)."""
+    ABSORBED_EXTENSIONS: ClassVar[tuple[tuple[str, ...], ...]] = ()
+    """Groups of ``EXTENSIONS`` whose effect the other parameters absorb without a trace
+    in the residuals while it moves every absolute position (a moving entrance pupil
+    against the face distances shifts the frame's origin along the axis): held by a fit,
+    their uncertainty stays in the covariance measurements use
+    (``CalibrationResult.uncertain``)."""
     SEEDED_FROM: ClassVar[str | None] = None
     """Registry name of the model whose calibration this one's start is built from;
     None: the start is built from the detections alone."""

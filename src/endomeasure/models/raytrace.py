@@ -265,6 +265,7 @@ class RaytraceModel(CameraModel):
     EXTENSIONS: ClassVar[tuple[tuple[str, ...], ...]] = (
         ("k3",), ("k4", "k5"), PUPIL_NAMES, ("p1", "p2"), IMAGE_TANGENTIAL_NAMES, ("k6",),
     )  # fmt: skip
+    ABSORBED_EXTENSIONS: ClassVar[tuple[tuple[str, ...], ...]] = (PUPIL_NAMES,)
     SEEDED_FROM: ClassVar[str | None] = "pinhole"
     PROJECTOR: ClassVar[type[Projector]] = _AimingProjector
 

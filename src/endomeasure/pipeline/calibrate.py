@@ -69,6 +69,7 @@ class ModelSummary:
     rms_ratio: float = float("nan")
     extensions: list[str] = dataclasses.field(default_factory=list)
     selection: list[str] = dataclasses.field(default_factory=list)
+    uncertain_std: dict[str, float] = dataclasses.field(default_factory=dict)
     plots: list[str] = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
@@ -224,8 +225,17 @@ def _summary(result, plots: list[str]) -> ModelSummary:
         rms_ratio=result.verdict.rms_ratio,
         extensions=list(result.extensions),
         selection=list(result.selection),
+        uncertain_std=_uncertain_std(result),
         plots=plots,
     )
+
+
+def _uncertain_std(result) -> dict[str, float]:
+    """The sigma of each extension the fit held but cannot rule out, by name."""
+    model = result.uncertainty_model
+    free = [model.PARAM_NAMES[i] for i in np.flatnonzero(model.free_mask)]
+    std = np.sqrt(np.diag(result.measurement_covariance))
+    return {n: float(std[free.index(n)]) for n in result.uncertain}
 
 
 def _read_seed(path: str | Path | None):

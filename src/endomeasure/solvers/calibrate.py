@@ -209,6 +209,13 @@ class CalibrationResult:
         (``EXTENSIONS``), freed in this fit.
     selection : tuple of str
         What the extension selection found, one sentence per group tried.
+    uncertain : tuple of str
+        Extensions the fit held that the data cannot rule out and the other parameters
+        absorb (``ABSORBED_EXTENSIONS``, :func:`_with_uncertain_extensions`).
+    uncertainty_covariance : ndarray, shape (G, G) or None
+        The covariance a measurement's uncertainty uses: that of the free parameters and
+        ``uncertain`` together, in the ``free_mask`` order of ``uncertainty_model``
+        (None: ``covariance``, nothing uncertain).
     """
 
     model: CameraModel
@@ -237,6 +244,8 @@ class CalibrationResult:
     verdict: Verdict | None = None
     extensions: tuple[str, ...] = ()
     selection: tuple[str, ...] = ()
+    uncertain: tuple[str, ...] = ()
+    uncertainty_covariance: np.ndarray | None = None
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -248,6 +257,18 @@ class CalibrationResult:
     @property
     def model_name(self) -> str:
         return self.model.NAME
+
+    @property
+    def uncertainty_model(self) -> CameraModel:
+        """The fitted model with ``uncertain`` counted as free: the model whose
+        ``free_mask`` orders :attr:`measurement_covariance`."""
+        return self.model.with_config(fixed=self.model.config.fixed - set(self.uncertain))
+
+    @property
+    def measurement_covariance(self) -> np.ndarray:
+        """The covariance a measurement's uncertainty varies ``uncertainty_model`` by."""
+        c = self.uncertainty_covariance
+        return self.covariance if c is None else c
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -598,7 +619,10 @@ def calibrate(
         nfev += selected.nfev
         fitted, extensions, selection = selected.fitted, selected.freed, selected.findings
     result = _finish(fitted, obs, nfev, first.origin, obs_cov)
-    return dataclasses.replace(result, extensions=extensions, selection=selection)
+    result = dataclasses.replace(result, extensions=extensions, selection=selection)
+    if options.fixed is not None:
+        return result
+    return _with_uncertain_extensions(result, fitted, obs, options)
 
 
 def _fit(model, obs: Observations, rvecs, tvecs, options: CalibrationOptions, state=None):
@@ -699,6 +723,40 @@ def _select_extensions(fitted, obs: Observations, options: CalibrationOptions) -
         return _Selection(fitted, (), tuple(findings), nfev)
     again = _fit(current.model, obs, current.rvecs, current.tvecs, options, current.state)
     return _Selection(again, tuple(freed), tuple(findings), nfev + again.nfev)
+
+
+def _with_uncertain_extensions(result: CalibrationResult, fitted, obs: Observations,
+                               options: CalibrationOptions) -> CalibrationResult:  # fmt: skip
+    """The covariance widened by the absorbed extensions the fit held.
+
+    A group the information criterion kept fixed stays at its neutral value, the best
+    estimate the data allow; but the probe may hold it at any value the data cannot tell
+    from that one. Most groups would leave a trace in the residuals, which the verdict
+    compares with the noise. A group in the model's ``ABSORBED_EXTENSIONS`` leaves none:
+    a moving entrance pupil, absorbed by the face distances, shifts the model frame's
+    origin along the axis, and with it every absolute depth, by many times the fitted
+    parameters' own sigma (``docs/models.md``, "Uncertainty of what the fit held"). So
+    the covariance measurements use is that of the fit with every such group free at its
+    held value (no prior), while it stays regular: a group the data cannot separate from
+    the fitted parameters at all changes no prediction. The fit, its residuals, its
+    covariance and its verdict remain those of the estimated parameters. Parameters the
+    user gave a value for or held are left out.
+    """
+    model = result.model
+    chosen = set(options.values) | options.hold
+    held: list[str] = []
+    covariance = None
+    for group in model.ABSORBED_EXTENSIONS:
+        if not all(n in model.config.fixed and n not in chosen for n in group):
+            continue
+        trial = fitted.fit._replace(
+            model=model.with_config(fixed=model.config.fixed - {*held, *group})
+        )
+        mc = _marginal(trial, obs, fitted.inliers, result.residual_variance)
+        if mc.covariance is not None:
+            held.extend(group)
+            covariance = mc.covariance
+    return dataclasses.replace(result, uncertain=tuple(held), uncertainty_covariance=covariance)
 
 
 SCREEN_FRACTION = 0.5

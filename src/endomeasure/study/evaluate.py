@@ -122,14 +122,6 @@ def _corners(optics, shots, noise_px: float, rng: np.random.Generator):
     return views, boards
 
 
-def _free_covariance(result) -> np.ndarray:
-    """The calibration covariance in the model's ``free_mask`` order."""
-    model = result.model
-    free = [model.PARAM_NAMES[i] for i in np.flatnonzero(model.free_mask)]
-    order = [result.free_names.index(n) for n in free]
-    return np.asarray(result.covariance)[np.ix_(order, order)]
-
-
 def _errors(spec: SweepSpec, optics, result) -> tuple[np.ndarray, np.ndarray]:
     """The (T, Z) field quantiles of the 95 % error (%) and the placements counted."""
     from endomeasure.measure.kinds import evaluate
@@ -142,7 +134,7 @@ def _errors(spec: SweepSpec, optics, result) -> tuple[np.ndarray, np.ndarray]:
         volume_grid,
     )
 
-    model, cov = result.model, _free_covariance(result)
+    model, cov = result.uncertainty_model, np.asarray(result.measurement_covariance)
     size, split = optics.config.image_size, optics.config.split
     e95 = np.full((len(spec.templates), len(spec.depths_mm)), np.nan)
     count = np.zeros(e95.shape, dtype=np.int64)
