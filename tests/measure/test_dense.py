@@ -127,6 +127,28 @@ def test_the_calibrations_share_of_the_depth_sigma_matches_monte_carlo(plane):
         assert predicted[k] == pytest.approx(np.std(tri.points[:, 2]), rel=0.1)
 
 
+def test_the_calibrations_share_survives_sigma_points_that_leave_the_half(plane):
+    """A match next to the split: the misfit's spread pushes some of its sigma points
+    across into the right half, so the transform retries that match alone with a
+    narrower spread; the others keep theirs, and the retried one gets the sigma it gets
+    on its own."""
+    from endomeasure.measure.dense import _calibration_sigma
+
+    model, _, surface = plane
+    ok = np.argwhere(surface.status == DenseStatus.OK)
+    ok = ok[:: ok.shape[0] // 4][:4]
+    u0, v0 = surface.region[:2]
+    left = ok[:, ::-1].astype(float) + [u0, v0]
+    right = surface.right[ok[:, 0], ok[:, 1]]
+    left[0, 0] = model.config.split - 0.6  # 0.1 px from the split: sigma points cross it
+    misfit_cov = np.diag([1.0, 0.01, 0.01, 0.01])
+    together = _calibration_sigma(model, None, misfit_cov, left, right)
+    alone = [_calibration_sigma(model, None, misfit_cov, left[k : k + 1], right[k : k + 1])[0]
+             for k in range(left.shape[0])]  # fmt: skip
+    assert np.all(np.isfinite(together))
+    assert together == pytest.approx(alone, rel=1e-9)
+
+
 # ----- the pieces: curve table and kernel, window choice, start surface -------------------
 
 TABLE_TOLERANCE_PX = 2e-3
