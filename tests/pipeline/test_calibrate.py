@@ -105,6 +105,29 @@ def test_export_json_round_trip(calibrated, session, tmp_path, name):
     np.testing.assert_array_equal(back.params, rec.params)
     assert back.config.to_dict() == rec.config
     assert doc["calibration"]["free_names"] == [str(n) for n in rec.arrays["free_names"]]
+    if "uncertainty_covariance" in rec.arrays:
+        assert doc["calibration"]["uncertain"] == [str(n) for n in rec.attrs["uncertain"]]
+        np.testing.assert_array_equal(doc["calibration"]["uncertainty_covariance"],
+                                      rec.arrays["uncertainty_covariance"])  # fmt: skip
+
+
+def test_the_covariance_measurements_use_holds_the_held_pupil(calibrated, session):
+    """The raytrace fit holds the moving pupil (its data do not call for it); the model a
+    measurement varies counts it as free and the stored covariance holds it, widening the
+    absolute depth but not the fitted parameters' own covariance."""
+    from endomeasure.io.records import calibrated_from_record
+
+    with open_session(session) as s:
+        rec = s.model("raytrace")
+    cm = calibrated_from_record(rec, session)
+    free = [cm.model.PARAM_NAMES[i] for i in np.flatnonzero(cm.model.free_mask)]
+    held = [str(n) for n in rec.attrs["uncertain"]]
+    assert held == ["e1", "e2"] and set(held) <= set(free)
+    assert not set(held) & {str(n) for n in rec.arrays["free_names"]}
+    assert cm.param_cov.shape == (len(free), len(free))
+    fitted = [str(n) for n in rec.arrays["free_names"]]
+    rear = rec.arrays["std"][fitted.index("rear_d")]
+    assert np.sqrt(cm.param_cov[free.index("rear_d"), free.index("rear_d")]) > rear
 
 
 def test_export_opencv_yaml_reads_back_with_the_same_numbers(calibrated, session, tmp_path):

@@ -193,7 +193,18 @@ def calibration_extras(record: ModelRecord) -> dict[str, Any] | None:
         "rms_px": float(record.attrs.get("rms", float("nan"))),
         "rms_half_px": np.asarray(record.arrays.get("rms_half", [])).tolist(),
         "residual_variance_px2": float(record.attrs.get("residual_variance", float("nan"))),
+        **_uncertainty_extras(record),
     }
+
+
+def _uncertainty_extras(record: ModelRecord) -> dict[str, Any]:
+    """The held extensions a measurement's covariance also varies, and that covariance
+    (:attr:`CalibrationResult.uncertain`), where the record has them."""
+    if "uncertainty_covariance" not in record.arrays:
+        return {}
+    names = np.asarray(record.attrs.get("uncertain", []), dtype=object).reshape(-1)
+    cov = np.asarray(record.arrays["uncertainty_covariance"], dtype=np.float64)
+    return {"uncertain": [str(n) for n in names], "uncertainty_covariance": cov.tolist()}
 
 
 @dataclasses.dataclass(frozen=True)
