@@ -222,6 +222,22 @@ def test_window_choice_grows_while_the_intervals_intersect():
     assert chosen.tolist() == [2, 1, 2, -1]
 
 
+def test_an_unmatched_pixel_gives_the_reason_of_the_largest_window_the_other_half_saw():
+    """Three unmatched pixels near the overlap's edge: the largest window leaves the other
+    half, so the smaller ones' reasons stand (imprecise; the larger of two refusals);
+    not seen only where no window was."""
+    from endomeasure.measure.dense import _picked
+
+    NS, UT, END = DenseStatus.NOT_SEEN, DenseStatus.UNTEXTURED, DenseStatus.AT_RANGE_END
+    candidates = {
+        15: _candidate([1.0, 1.0, 1.0], [0.5, 0.5, 0.5], [UT, UT, NS]),
+        31: _candidate([1.0, 1.0, 1.0], [0.5, 0.5, 0.5], [NS, END, NS]),
+        63: _candidate([1.0, 1.0, 1.0], [0.5, 0.5, 0.5], [NS, NS, NS]),
+    }
+    picked = _picked(candidates, np.array([-1, -1, -1]))
+    assert picked.status.tolist() == [UT, END, NS]
+
+
 def test_the_prefiltered_ladder_answers_only_where_the_plain_one_matched_nothing():
     """Three pixels: the plain ladder matched (its choice stands, though the prefiltered
     one is more precise), matched nothing (the prefiltered ladder's choice), neither."""

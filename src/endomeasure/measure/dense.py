@@ -40,8 +40,8 @@ Method
    vectorised over pixels); the calibration's share is added when given
    (:func:`_calibration_sigma`).
 6. **Refusals** (:class:`DenseStatus`), never a guessed depth, when no window size
-   matched (the largest size's reason): the other half does not see the window
-   (``NOT_SEEN``), the predicted precision is worse than
+   matched (the reason of the largest window the other half saw): the other half sees
+   none of the windows (``NOT_SEEN``), the predicted precision is worse than
    :data:`~endomeasure.measure.correspondence.MAX_PRECISION_PX` (``UNTEXTURED``), the
    ZNCC is below :data:`~endomeasure.measure.correspondence.MIN_SCORE` (``LOW_SCORE``),
    the peak sits at an end of the searched stretch (``AT_RANGE_END``); or the right
@@ -612,7 +612,7 @@ def _catmull_rom_matrix(n: int, nodes: int, step: int) -> np.ndarray:
 class _Candidate(NamedTuple):
     """A match per pixel: inverse depth, its sigma, the right pixel, the noise-corrected
     score, the precision along the curve (px), the status, the window's side (px; 0:
-    none matched, ``status`` then says why the last rung failed) and the sigma of its
+    none matched, ``status`` then says why: :func:`_picked`) and the sigma of its
     halves' prefilter (px)."""
 
     w: np.ndarray
@@ -873,8 +873,14 @@ def _picked(candidates: dict, chosen: np.ndarray) -> _Candidate:
             excess = (w - c.w) ** 2 - c.sigma_w**2
         bias2 = np.where(smaller & (excess > bias2), excess, bias2)
     matched = chosen >= 0
-    # no rung matched: the last rung's reason (it has the most evidence)
-    status = np.where(matched, DenseStatus.OK, candidates[rungs[-1]].status).astype(np.uint8)
+    # no rung matched: the reason of the last rung whose window the other half saw (the
+    # later, larger windows have the most evidence; a window that outgrows the overlap
+    # says nothing about the pixel); not seen only when no window was
+    reason = np.full(chosen.shape, DenseStatus.NOT_SEEN, dtype=np.uint8)
+    for rung in rungs:
+        said = candidates[rung].status
+        reason = np.where((said != DenseStatus.NOT_SEEN) & (said != DenseStatus.OK), said, reason)
+    status = np.where(matched, DenseStatus.OK, reason).astype(np.uint8)
     window = np.where(matched, gather("window"), 0)
     prefilter = np.where(matched, gather("prefilter"), 0.0)
     return _Candidate(w, np.sqrt(sigma_w**2 + bias2), gather("right"), gather("score"),
