@@ -151,7 +151,10 @@ def _reference_points(cm, image_pixels, refs, patch: int, model_name: str):
     pixel_std = np.zeros((REF_POINTS, 2))
     pixel_std[:, 1] = [m.precision_px for m in matches]  # the clicked pixel is exact
     noise = ImageNoise.per_point(pixel_std, "match precision, left pixels exact")
-    cov = point_covariances(model, ql, qr, noise, cm.param_cov, cm.misfit)
+    # without the calibration's parameters, as the dense samples: they move the plane and
+    # the surface alike, and counted per point their shift of the model frame (which no
+    # height sees, docs/models.md) would make every height's +-
+    cov = point_covariances(model, ql, qr, noise, None, cm.misfit)
     shown = [
         {"left_px": ql[i].tolist(), "right_px": qr[i].tolist(), "xyz_mm": tri.points[i].tolist(),
          "sigma_mm": np.sqrt(np.diag(cov[i])).tolist(), "match": matches[i].to_dict()}
