@@ -229,3 +229,19 @@ def test_a_map_spans_the_depths_the_calibration_saw(calibrated, session, tmp_pat
     assert len(depths) == 8
     assert depths[0] == pytest.approx(z.min(), abs=MAP_DEPTH_TOL_MM)
     assert depths[-1] == pytest.approx(z.max(), abs=MAP_DEPTH_TOL_MM)
+
+
+@pytest.mark.parametrize("uncertain", [["e1", "not_a_parameter"], ["e1"]])
+def test_a_crafted_measurement_covariance_is_refused_in_one_line(calibrated, session, uncertain):
+    """Unknown held names, or a covariance that does not fit the model with them free."""
+    import dataclasses
+
+    from endomeasure.errors import BadInputError
+    from endomeasure.io.records import calibrated_from_record
+
+    with open_session(session) as s:
+        rec = s.model("raytrace")
+    crafted = dataclasses.replace(rec, attrs={**rec.attrs, "uncertain": uncertain})
+    with pytest.raises(BadInputError) as err:
+        calibrated_from_record(crafted, session)
+    assert "\n" not in str(err.value)
