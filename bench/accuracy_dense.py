@@ -131,7 +131,8 @@ def _calibration_dz(cm, preset) -> tuple[float, ...]:
         tri = triangulate(model, left[seen], right.pixels[seen])
         ok = tri.status == 0
         errors.append(float(np.median(tri.points[ok, 2] - z)) if ok.any() else np.nan)
-        sigma = (_calibration_sigma(model, cm.param_cov, None, left[seen][ok], right.pixels[seen][ok])
+        pairs = left[seen][ok], right.pixels[seen][ok]
+        sigma = (_calibration_sigma(model, cm.param_cov, None, *pairs)
                  if ok.any() and cm.param_cov is not None else np.full(1, np.nan))  # fmt: skip
         sigmas.append(float(np.median(sigma)))
     return errors[0], errors[1], sigmas[0], sigmas[1]

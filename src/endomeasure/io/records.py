@@ -348,10 +348,8 @@ def _uncertainty_model(record: ModelRecord, model, session: str | Path):
     ``uncertainty_covariance`` holds (attribute ``uncertain``,
     :attr:`CalibrationResult.uncertain`) counted as free, so that its ``free_mask`` is
     that covariance's order."""
-    names = record.attrs.get("uncertain", [])
-    if isinstance(names, str):
-        names = [names]
-    names = [str(n) for n in np.asarray(names, dtype=object).reshape(-1)]
+    held = np.asarray(record.attrs.get("uncertain", []), dtype=object)
+    names = [str(n) for n in held.reshape(-1)]
     unknown = sorted(set(names) - set(model.PARAM_NAMES))
     if unknown:
         raise BadInputError(

@@ -1070,8 +1070,8 @@ def _calibration_sigma(model, param_cov, misfit_cov, left, right) -> np.ndarray:
         return np.where(tri.status == 0, tri.points[..., 2], np.nan)
 
     # the pixels are inputs, not captured: the transform's retries pass a subset of rows
-    x0 = np.concatenate([np.broadcast_to(model.params[free] if n_par else np.zeros(0),
-                                         (nodes_l.shape[0], n_par)), nodes_l, nodes_r], axis=1)  # fmt: skip
+    mean = np.broadcast_to(model.params[free] if n_par else np.zeros(0), (len(nodes_l), n_par))
+    x0 = np.concatenate([mean, nodes_l, nodes_r], axis=1)
     sigma = unscented(depth_of, x0, block_diag(param_cov, misfit_cov)).std
     good = np.isfinite(sigma)
     if not good.any():

@@ -153,7 +153,7 @@ def _reference_points(cm, image_pixels, refs, patch: int, model_name: str):
     noise = ImageNoise.per_point(pixel_std, "match precision, left pixels exact")
     # without the calibration's parameters, as the dense samples: they move the plane and
     # the surface alike, and counted per point their shift of the model frame (which no
-    # height sees, docs/models.md) would make every height's +-
+    # height sees, docs/models.md) would make up most of every height's +-
     cov = point_covariances(model, ql, qr, noise, None, cm.misfit)
     shown = [
         {"left_px": ql[i].tolist(), "right_px": qr[i].tolist(), "xyz_mm": tri.points[i].tolist(),
