@@ -72,6 +72,12 @@ class Frame(NamedTuple):
     match_within: np.ndarray  # bool: inside the match's own 2 sigma
     calibration_bias: float  # median (z of the true match under the model - z) / z
     calibration_dz: tuple  # near, far z error of true points; their sigma, mm (_calibration_dz)
+    by_grey: np.ndarray  # (bins, 2): counted and measured pixels per GREY_BINS bin
+
+
+GREY_BINS = (0.0, 10.0, 30.0, 100.0, np.inf)
+"""Bins of the left half's local mean grey level (a window of the smallest refinement
+size), DN: where the scene is too dim for any window, coverage falls with the signal."""
 
 
 def frame(label, cm, preset, target, image, settings) -> Frame:
@@ -102,7 +108,18 @@ def frame(label, cm, preset, target, image, settings) -> Frame:
     return Frame(label, err / truth[ok], err <= 2 * surface.sigma_depth[ok],
                  surface.sigma_depth[ok] / truth[ok], int(both.sum()), refused,
                  float(np.nanmedian(truth)), seconds, ratio, image.shape, match_err,
-                 match_within, bias, _calibration_dz(cm, preset))  # fmt: skip
+                 match_within, bias, _calibration_dz(cm, preset),
+                 _by_grey(surface, both, ok, settings.window_range_px[0]))  # fmt: skip
+
+
+def _by_grey(surface, both, ok, window: int) -> np.ndarray:
+    """Counted and measured pixels per bin of the local mean grey level (GREY_BINS)."""
+    import cv2
+
+    mean = cv2.blur(surface.grey.astype(np.float32), (window, window))
+    bins = np.digitize(mean, GREY_BINS[1:-1])
+    return np.array([[int((both & (bins == k)).sum()), int((ok & (bins == k)).sum())]
+                     for k in range(len(GREY_BINS) - 1)])  # fmt: skip
 
 
 def _calibration_dz(cm, preset) -> tuple[float, ...]:
@@ -178,6 +195,21 @@ def _row(f: Frame) -> str:
         + ", ".join(f"{k} {v}" for k, v in f.refused.items() if v)
         + " |"
     )
+
+
+def _bin_label(k: int) -> str:
+    lo, hi = GREY_BINS[k], GREY_BINS[k + 1]
+    return f"grey >= {lo:g} DN" if np.isinf(hi) else f"grey {lo:g}-{hi:g} DN"
+
+
+def _grey_row(name: str, frames: list[Frame]) -> str:
+    counts = np.sum([f.by_grey for f in frames], axis=0)
+    share = 100 * counts[:, 0] / max(int(counts[:, 0].sum()), 1)
+    covered = 100 * counts[:, 1] / np.maximum(counts[:, 0], 1)
+    cells = [
+        f"{a:.0f} % of pixels, {b:.1f} % with depth" for a, b in zip(share, covered, strict=True)
+    ]
+    return f"| {name} | " + " | ".join(cells) + " |"
 
 
 def default_frames(session: Path, settings_for) -> list[Frame]:
@@ -308,6 +340,14 @@ def main() -> int:
         "+- its sigma at its nearest / farthest board depth, mm | s | counted pixels refused |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
         *[_row(f) for f in everything],
+        "",
+        "Coverage by the left half's local mean grey level (over the smallest window), "
+        "all frames of each group: the share of the counted pixels in each bin and the "
+        "share of those with a depth.",
+        "",
+        "| images | " + " | ".join(_bin_label(k) for k in range(len(GREY_BINS) - 1)) + " |",
+        "|---|" + "---:|" * (len(GREY_BINS) - 1),
+        *[_grey_row(name, fs) for name, fs in groups],
         "",
         f"- {checks['coverage'].target}: {coverage:.1f} % ({checks['coverage']})",
         f"- {checks['error'].target}: {median:.3f} % ({checks['error']})",
