@@ -47,6 +47,7 @@ ACCURACY_RUNS := \
 	"bench/zone_spread_designs.py $(ACCURACY_WORK)/designs" \
 	"bench/misfit_designs.py $(ACCURACY_WORK)/designs --default $(ACCURACY_WORK)/accuracy.h5" \
 	"bench/operator_designs.py $(ACCURACY_WORK)/designs" \
+	"bench/calibration_origin.py --designs $(ACCURACY_WORK)/designs --session $(DEMO_DIR)/demo.h5" \
 	"bench/accuracy_dense.py --session $(DEMO_DIR)/demo.h5 --designs $(ACCURACY_WORK)/designs" \
 	"bench/accuracy_profile.py --session $(DEMO_DIR)/demo.h5" \
 	"bench/accuracy_dense_sgbm.py --session $(DEMO_DIR)/demo.h5" \

@@ -163,6 +163,39 @@ def design_scenes(work: Path, seed: int, count: int) -> DesignScenes | None:
     return DesignScenes(cm, preset, scene_seed, shots, images)
 
 
+def calibration_dz(model, param_cov, depth_range_mm, truth) -> tuple[float, ...]:
+    """A calibrated model's z error of true points at the nearest and the farthest depth
+    its boards were seen at (median over a grid of the left half's field, mm), then its
+    sigma of that z from ``param_cov`` (in ``model``'s ``free_mask`` order; median, mm):
+    each point's true pixels in both halves (the ``truth`` optics) triangulated with the
+    model, the sigma by the unscented transform, as every dense depth's calibration
+    share. An error proportional to z is a scale error; one constant in mm is the model
+    frame's origin set off the truth's along the axis, which no length sees."""
+    import numpy as np
+
+    from endomeasure.conventions import Half
+    from endomeasure.measure.dense import _calibration_sigma
+    from endomeasure.solvers.triangulate import triangulate
+
+    split, height = model.config.split, model.config.image_size[1]
+    gu, gv = np.meshgrid(np.linspace(0.1, 0.95, 12) * split, np.linspace(0.1, 0.9, 10) * height)
+    left = np.stack([gu, gv], -1).reshape(-1, 2)
+    rays = truth.rays(left, Half.LEFT)
+    errors, sigmas = [], []
+    for z in depth_range_mm or (np.nan, np.nan):
+        t = (z - rays.origins[:, 2]) / rays.directions[:, 2]
+        right = truth.project(rays.origins + t[:, None] * rays.directions, Half.RIGHT)
+        seen = right.status == 0
+        tri = triangulate(model, left[seen], right.pixels[seen])
+        ok = tri.status == 0
+        errors.append(float(np.median(tri.points[ok, 2] - z)) if ok.any() else np.nan)
+        pairs = left[seen][ok], right.pixels[seen][ok]
+        sigma = (_calibration_sigma(model, param_cov, None, *pairs)
+                 if ok.any() and param_cov is not None else np.full(1, np.nan))  # fmt: skip
+        sigmas.append(float(np.median(sigma)))
+    return errors[0], errors[1], sigmas[0], sigmas[1]
+
+
 def script_parser(
     doc: str | None, *, seed: int | None = None, work: bool = False
 ) -> argparse.ArgumentParser:

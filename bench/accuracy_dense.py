@@ -31,6 +31,7 @@ from _common import (  # noqa: E402
     ACCURACY,
     Report,
     Target,
+    calibration_dz,
     design_scenes,
     parse_seeds,
     script_parser,
@@ -71,7 +72,7 @@ class Frame(NamedTuple):
     match_errors: np.ndarray  # |z - z of the true match under the model| / z
     match_within: np.ndarray  # bool: inside the match's own 2 sigma
     calibration_bias: float  # median (z of the true match under the model - z) / z
-    calibration_dz: tuple  # near, far z error of true points; their sigma, mm (_calibration_dz)
+    calibration_dz: tuple  # near, far z error of true points; their sigma, mm (calibration_dz)
     by_grey: np.ndarray  # (bins, 2): counted and measured pixels per GREY_BINS bin
 
 
@@ -108,7 +109,8 @@ def frame(label, cm, preset, target, image, settings) -> Frame:
     return Frame(label, err / truth[ok], err <= 2 * surface.sigma_depth[ok],
                  surface.sigma_depth[ok] / truth[ok], int(both.sum()), refused,
                  float(np.nanmedian(truth)), seconds, ratio, image.shape, match_err,
-                 match_within, bias, _calibration_dz(cm, preset),
+                 match_within, bias,
+                 calibration_dz(cm.model, cm.param_cov, cm.depth_range_mm, preset.truth_optics),
                  _by_grey(surface, both, ok, settings.window_range_px[0]))  # fmt: skip
 
 
@@ -120,39 +122,6 @@ def _by_grey(surface, both, ok, window: int) -> np.ndarray:
     bins = np.digitize(mean, GREY_BINS[1:-1])
     return np.array([[int((both & (bins == k)).sum()), int((ok & (bins == k)).sum())]
                      for k in range(len(GREY_BINS) - 1)])  # fmt: skip
-
-
-def _calibration_dz(cm, preset) -> tuple[float, ...]:
-    """The calibrated model's z error (mm, median over a grid of the left half's field)
-    of true points at the nearest and the farthest depth the calibration saw the board,
-    and the calibration's own sigma of that z (median, mm): each point's true pixels in
-    both halves (the truth optics) triangulated with the model; the sigma by the
-    unscented transform of the calibration covariance, as every depth's share. An error
-    proportional to z is a scale error; one constant in mm is the model frame's origin
-    set off the truth's along the axis, which no length sees."""
-    from endomeasure.conventions import Half
-    from endomeasure.measure.dense import _calibration_sigma
-    from endomeasure.solvers.triangulate import triangulate
-
-    truth, model = preset.truth_optics, cm.model
-    split, height = model.config.split, model.config.image_size[1]
-    gu, gv = np.meshgrid(np.linspace(0.1, 0.95, 12) * split, np.linspace(0.1, 0.9, 10) * height)
-    left = np.stack([gu, gv], -1).reshape(-1, 2)
-    rays = truth.rays(left, Half.LEFT)
-    near, far = cm.depth_range_mm or (np.nan, np.nan)
-    errors, sigmas = [], []
-    for z in (near, far):
-        t = (z - rays.origins[:, 2]) / rays.directions[:, 2]
-        right = truth.project(rays.origins + t[:, None] * rays.directions, Half.RIGHT)
-        seen = right.status == 0
-        tri = triangulate(model, left[seen], right.pixels[seen])
-        ok = tri.status == 0
-        errors.append(float(np.median(tri.points[ok, 2] - z)) if ok.any() else np.nan)
-        pairs = left[seen][ok], right.pixels[seen][ok]
-        sigma = (_calibration_sigma(model, cm.param_cov, None, *pairs)
-                 if ok.any() and cm.param_cov is not None else np.full(1, np.nan))  # fmt: skip
-        sigmas.append(float(np.median(sigma)))
-    return errors[0], errors[1], sigmas[0], sigmas[1]
 
 
 def _split_budget(cm, misfit, surface, ok, truth, true_right):
@@ -265,6 +234,10 @@ def main() -> int:
         default=None,
         help="prefiltered ladder's sigma, px (0: none; default: surface's)",
     )
+    parser.add_argument("--sweep-window", type=int, default=None,
+                        help="the plane sweep's window, px (default: surface's)")  # fmt: skip
+    parser.add_argument("--max-precision", type=float, default=None,
+                        help="worst accepted match precision, px (default: surface's)")  # fmt: skip
     args = parser.parse_args()
     from endomeasure import defaults
     from endomeasure.measure.dense import DenseSettings
@@ -272,11 +245,15 @@ def main() -> int:
 
     windows = args.window_range or defaults.DENSE_WINDOW_RANGE_PX
 
-    prefilter = DenseSettings().prefilter_px if args.prefilter is None else args.prefilter
+    default = DenseSettings()
+    prefilter = default.prefilter_px if args.prefilter is None else args.prefilter
+    sweep = default.window_px if args.sweep_window is None else args.sweep_window
+    limit = default.max_precision_px if args.max_precision is None else args.max_precision
 
     def settings_for(cm):  # as `endomeasure surface` does
         return DenseSettings(depth_range_mm=search_depths(cm), window_range_px=windows,
-                             prefilter_px=prefilter)  # fmt: skip
+                             prefilter_px=prefilter, window_px=sweep,
+                             max_precision_px=limit)  # fmt: skip
 
     frames = default_frames(args.session, settings_for)
     design = []
@@ -310,14 +287,19 @@ def main() -> int:
         command += f" --window-range {windows[0]},{windows[1]}"
     if args.prefilter is not None:
         command += f" --prefilter {args.prefilter:g}"
+    if args.sweep_window is not None:
+        command += f" --sweep-window {sweep}"
+    if args.max_precision is not None:
+        command += f" --max-precision {limit:g}"
     body = "\n".join([
         "## Dense surfaces on the scene images",
         "",
         f"`{command}` (the default preset: the demo's raytrace calibration, seed 0; a random "
         "design: its own calibration from its own images). Truth: the simulator's per-pixel "
         "depth through the truth optics; counted: left pixels whose true surface point the "
-        f"right half sees. Sweep window {defaults.DENSE_WINDOW_PX} px, refinement windows "
-        f"{windows[0]}-{windows[1]} px, prefiltered ladder {prefilter:g} px. *Matching "
+        f"right half sees. Sweep window {sweep} px, refinement windows "
+        f"{windows[0]}-{windows[1]} px, prefiltered ladder {prefilter:g} px, precision "
+        f"limit {limit:g} px. *Matching "
         "alone*: the depth against the calibrated model's own depth of the true match "
         "(the truth optics' right pixel of the true point, triangulated with the model), "
         "against the match's sigma without the calibration's share; the *calibration's "

@@ -521,13 +521,6 @@ def _spline_noise_variance(positions: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return variance, gradient
 
 
-def _spline_derivative_noise() -> float:
-    """Mean variance of the derivative, along any unit direction, of unit white pixel
-    noise interpolated by the cubic spline (averaged over the sub-pixel phase): about
-    2.16 per px^2."""
-    return noise_transfer().derivative
-
-
 def _tabulated_weights(frac: np.ndarray) -> np.ndarray:
     """Spline weights at phases ``frac`` in [0, 1), (..., 2R + 1), from the table."""
     table = _spline_table()[0]
@@ -855,8 +848,10 @@ def match_precision(energy_t, n, gain, noise_ref, noise_t, misfit, correlation,
     ``misfit`` the two patches' difference beyond noise per sample
     (:func:`_measured_misfit`) and ``correlation`` from
     :func:`_interpolated_noise_correlation`; ``derivative_noise`` the variance of the
-    searched half's interpolated derivative per unit pixel noise (default the plain
-    spline's, :func:`_spline_derivative_noise`; less after a prefilter). Returns ``inf``
+    searched half's interpolated derivative per unit pixel noise, along any unit
+    direction (default the plain spline's, about 2.16 per px^2:
+    :attr:`~endomeasure.interpolation.NoiseTransfer.derivative`; less after a
+    prefilter). Returns ``inf``
     where ``energy_t`` is not positive. The dense search
     (:mod:`endomeasure.measure.dense`) uses it per pixel.
     """
@@ -865,7 +860,7 @@ def match_precision(energy_t, n, gain, noise_ref, noise_t, misfit, correlation,
     safe = np.where(ok, energy, 1.0)
     first = (gain**2 * noise_ref**2 + correlation * noise_t**2) / safe
     if derivative_noise is None:
-        derivative_noise = _spline_derivative_noise()
+        derivative_noise = noise_transfer().derivative
     second = n * derivative_noise * noise_t**2 / safe
     return np.where(ok, np.sqrt(first * (1.0 + second) + misfit**2 / safe), np.inf)
 

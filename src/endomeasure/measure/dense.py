@@ -152,6 +152,10 @@ class DenseSettings:
         multiples of the plain ladder's (the same number of samples, so the same cost):
         its correlation peaks are broader (the prefilter widens them), and its starts
         worse (it works where the plain windows found nothing: dim, faint texture).
+    max_precision_px : float
+        Worst accepted predicted precision along the curve, px (``UNTEXTURED`` beyond):
+        the operator search's :data:`~endomeasure.measure.correspondence.MAX_PRECISION_PX`,
+        as its :class:`~endomeasure.measure.correspondence.MatchSettings` has it.
     """
 
     window_px: int = defaults.DENSE_WINDOW_PX
@@ -166,6 +170,7 @@ class DenseSettings:
     smooth_px: int = 5
     prefilter_px: float = 1.0
     prefilter_stride: float = 2.0
+    max_precision_px: float = MAX_PRECISION_PX
 
     def __post_init__(self):
         if self.window_px < 3 or self.window_px % 2 == 0:
@@ -177,6 +182,8 @@ class DenseSettings:
             raise BadInputError(
                 f"window sizes {small}-{large} px: need an odd smallest >= 3 and largest >= it"
             )
+        if not self.max_precision_px > 0:
+            raise BadInputError(f"precision limit {self.max_precision_px} px is not > 0")
         if not self.prefilter_px >= 0:
             raise BadInputError(f"prefilter sigma {self.prefilter_px} px is not >= 0")
         near, far = self.depth_range_mm
@@ -660,7 +667,7 @@ def _refine(table: _CurveTable, bases: dict, refs: dict, images: dict,
         status = np.full(w.shape, DenseStatus.OK, dtype=np.uint8)
         status[unseen | ~np.isfinite(score)] = DenseStatus.NOT_SEEN
         status[(status == DenseStatus.OK) & end] = DenseStatus.AT_RANGE_END
-        imprecise = ~(precision <= MAX_PRECISION_PX)
+        imprecise = ~(precision <= settings.max_precision_px)
         status[(status == DenseStatus.OK) & imprecise] = DenseStatus.UNTEXTURED
         status[(status == DenseStatus.OK) & ~(score >= MIN_SCORE)] = DenseStatus.LOW_SCORE
         out[rung] = _Candidate(w, sigma_w, q_r, score, precision, status,
