@@ -13,8 +13,7 @@ Method
    warped into the left half's pixels by each level's map and compared with zero-mean
    normalised cross-correlation (ZNCC, about each window's best plane) over a square
    window (box filters). The best level per pixel and a parabola give the coarse depth.
-   The same sweep from the right half gives its own coarse depth map, for the left-right
-   check. Both sweep the prefiltered halves of step 3 (they only give starts).
+   It sweeps the prefiltered halves of step 3 (it only gives starts).
 2. **Refinement along the curve, per window size.** Square windows of several sides
    (``window_range_px``) are warped by a start surface and shifted together along their
    pixels' curves (points from the table, Catmull-Rom in space and depth, the right half
@@ -44,9 +43,11 @@ Method
    none of the windows (``NOT_SEEN``), the predicted precision is worse than
    :data:`~endomeasure.measure.correspondence.MAX_PRECISION_PX` (``UNTEXTURED``), the
    ZNCC is below :data:`~endomeasure.measure.correspondence.MIN_SCORE` (``LOW_SCORE``),
-   the peak sits at an end of the searched stretch (``AT_RANGE_END``); or the right
-   half's own depth at the matched pixel disagrees (``INCONSISTENT``: occlusion or a
-   wrong peak).
+   or the peak sits at an end of the searched stretch (``AT_RANGE_END``). There is no
+   left-right check against a sweep from the right half: measured on the scene images,
+   the matches it refused were inside their own 2 sigma nearly as often as the ones it
+   kept (``docs/surface.md``), so it cost coverage without catching errors the score,
+   the precision, the windows' agreement and the sigma do not.
 """
 
 from __future__ import annotations
@@ -100,7 +101,7 @@ class DenseStatus(enum.IntEnum):
     UNTEXTURED = 2
     LOW_SCORE = 3
     AT_RANGE_END = 4
-    INCONSISTENT = 5
+    INCONSISTENT = 5  # the former left-right check's; no longer given, kept for older records
 
     @property
     def label(self) -> str:
@@ -133,8 +134,6 @@ class DenseSettings:
     grid_px : int
         Spacing of the reference pixels whose curves are projected exactly (the table
         the sweep and the refinement interpolate).
-    consistency_levels : float
-        Largest difference of the left and right coarse depths, in coarse levels.
     smooth_px : int
         Side of the median that removes outliers from a pass's depths before its start
         surface is fitted (odd).
@@ -166,7 +165,6 @@ class DenseSettings:
     fine_reach: float = 1.5
     passes: int = 3
     grid_px: int = 4
-    consistency_levels: float = 2.0
     smooth_px: int = 5
     prefilter_px: float = 1.0
     prefilter_stride: float = 2.0
@@ -797,7 +795,6 @@ def dense_surface(
     refs = {rung: _ref_stats(images[rung.blur].grey, rung.size) for rung in rungs}
     match = _adaptive_refinement(table, coarse.w, refs, images, levels, settings)
     w, sigma_w, q_r, status = match.w, match.sigma_w, match.right, match.status
-    _check_consistency(model, swept, status, q_r, w, levels, settings)
     region_px = np.stack(np.meshgrid(np.arange(u0, u1, dtype=np.float64),
                                      np.arange(v0, v1, dtype=np.float64)), -1)  # fmt: skip
     rays = model.rays(region_px, Half.LEFT)
@@ -1089,37 +1086,6 @@ def _calibration_sigma(model, param_cov, misfit_cov, left, right) -> np.ndarray:
     except (QhullError, ValueError):
         return near
     return np.where(np.isfinite(out), out, near)
-
-
-def _check_consistency(model, grey, status, q_r, w, levels, settings: DenseSettings) -> None:
-    """Mark ``INCONSISTENT`` (in place) the OK pixels whose right match's own coarse
-    depth (the sweep from the right half) differs by more than ``consistency_levels``.
-
-    Where the right half's sweep found no depth (texture too weak for its window) there
-    is nothing to compare: such a match stands on its own score and window agreement."""
-    ok = status == DenseStatus.OK
-    if not ok.any():
-        return
-    width, height = model.config.image_size
-    split = model.config.split
-    r = settings.window_px // 2
-    q_ok = q_r[ok]
-    ru0 = int(max(split, np.floor(q_ok[:, 0].min()) - r - 1))
-    ru1 = int(min(width, np.ceil(q_ok[:, 0].max()) + r + 2))
-    rv0 = int(max(0, np.floor(q_ok[:, 1].min()) - r - 1))
-    rv1 = int(min(height, np.ceil(q_ok[:, 1].max()) + r + 2))
-    frame = _Frame(ru0, rv0, ru1, rv1, Half.RIGHT)
-    # the sweep from the right only has to agree within levels about 1 px apart: its
-    # planes from a grid twice as coarse (a quarter of the projections) will do
-    table = _curve_table(model, frame, levels, 2 * settings.grid_px)
-    back = _coarse(model, grey, table, frame, levels, settings)
-    q_safe = np.nan_to_num(q_r, nan=0.0)
-    iu = np.clip(np.rint(q_safe[..., 0]).astype(np.intp) - ru0, 0, ru1 - ru0 - 1)
-    iv = np.clip(np.rint(q_safe[..., 1]).astype(np.intp) - rv0, 0, rv1 - rv0 - 1)
-    own = back.w[iv, iu]
-    with np.errstate(invalid="ignore"):
-        differ = np.abs(own - w) > settings.consistency_levels * (levels[1] - levels[0])
-    status[ok & differ] = DenseStatus.INCONSISTENT
 
 
 def accuracy_classes(surface: DenseSurface, bands_percent: tuple[float, float]) -> np.ndarray:

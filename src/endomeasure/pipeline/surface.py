@@ -133,7 +133,7 @@ def surface(
     if not ok.any():
         raise GoalNotMetError(
             f"no pixel of region {','.join(map(str, clipped))} of {image!r} could be measured "
-            "(untextured, not seen by the right half, or inconsistent)",
+            "(untextured, not seen by the right half, or no clear correlation peak)",
             path=str(session),
             hint="choose a textured region that both halves see",
         )
