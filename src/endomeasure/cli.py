@@ -1733,8 +1733,8 @@ def surface_command(
     """Dense 3D of a region: depth per left pixel with its sigma, stored in the session.
 
     Pixels that cannot be measured (untextured, not seen by the right half, a correlation
-    too low or a peak beyond the searched stretch) are marked, not guessed. The record ``surface/IMAGE.MODEL`` holds the
-    depth map, its sigma and the status per pixel.
+    too low or a peak beyond the searched stretch) are marked, not guessed. The record
+    ``surface/IMAGE.MODEL`` holds the depth map, its sigma and the status per pixel.
     """
     from endomeasure.pipeline.surface import check_region_text, surface
 
