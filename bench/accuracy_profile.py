@@ -167,9 +167,12 @@ def _plant_pits(rng, preset, target, grey, mask: np.ndarray, window: int, count:
 
 
 def _pit_rows(cm, preset, shots, images, settings, per_image: int, seed: int,
-              scene_seed: int = SCENE_SEED, label: str = ""):  # fmt: skip
+              scene_seed: int = SCENE_SEED, label: str = "", matte: bool = False):  # fmt: skip
     """The planted-pit cases: table rows, within-2-sigma flags and refusals (``label``
-    before each image's name; ``scene_seed``: the scene set's, for its sensor noise)."""
+    before each image's name; ``scene_seed``: the scene set's, for its sensor noise;
+    ``matte``: the pitted part rendered without its specular reflection, a control)."""
+    import dataclasses
+
     from endomeasure.pipeline.simulate import _noise_rng
     from endomeasure.simulate.render import render
 
@@ -186,6 +189,8 @@ def _pit_rows(cm, preset, shots, images, settings, per_image: int, seed: int,
             continue
         for k, (pit, a, b, windows) in enumerate(planted):
             target = shot.target.with_pits(pit[None])
+            if matte:
+                target = dataclasses.replace(target, specular=0.0)
             image = render(preset, target, rng=_noise_rng(scene_seed, "scene", shot.index)).image
             try:
                 prof, truth = _case(cm, preset, target, image, a, b, settings)
@@ -324,7 +329,13 @@ def main() -> int:
     parser.add_argument("--designs", type=Path, default=None, help="random designs' WORK folder")
     parser.add_argument("--design-seeds", default="1-12", help="e.g. 1-12 or 1,5")
     parser.add_argument("--images", type=int, default=1, help="scene images per design")
+    parser.add_argument("--matte", action="store_true",
+                        help="render the pitted part without its specular reflection (a "
+                             "control: what the view-dependent highlight costs); implies "
+                             "--no-write")  # fmt: skip
     args = parser.parse_args()
+    if args.matte:
+        args.no_write = True
 
     from endomeasure import defaults
     from endomeasure.measure.dense import DenseSettings
@@ -351,7 +362,7 @@ def main() -> int:
                                     settings, rng, paths), strict=True):  # fmt: skip
             into.extend(got)
         got = _pit_rows(one.cm, one.preset, one.shots, one.images, settings, pits, args.seed,
-                        one.scene_seed, one.label)  # fmt: skip
+                        one.scene_seed, one.label, args.matte)  # fmt: skip
         for into, part in zip((pit_rows, pit_ok, pit_ratio, pit_refused), got, strict=True):
             into.extend(part)
         print(f"{one.label.rstrip(' /') or 'default preset'}: {len(rows)} profiles, "
