@@ -285,13 +285,12 @@ def _grid(lo: int, hi: int, step: int) -> np.ndarray:
 
 
 class _Frame(NamedTuple):
-    """A reference window of the image: where its pixels are and their rays."""
+    """The reference window: a rectangle of the left half (columns ``u0 <= u < u1``)."""
 
     u0: int
     v0: int
     u1: int
     v1: int
-    ref: Half
 
 
 class _CurveTable(NamedTuple):
@@ -320,9 +319,8 @@ def _curve_table(model, frame: _Frame, levels: np.ndarray, grid_px: int) -> _Cur
     gu = frame.u0 + grid_px * np.arange(-1, (frame.u1 - 1 - frame.u0) // grid_px + 3)
     gv = frame.v0 + grid_px * np.arange(-1, (frame.v1 - 1 - frame.v0) // grid_px + 3)
     nodes = np.stack(np.meshgrid(gu, gv), axis=-1).astype(np.float64)  # (gh, gw, 2)
-    rays = model.rays(nodes, frame.ref)
-    other = Half.RIGHT if frame.ref is Half.LEFT else Half.LEFT
-    field = model.project(_ray_points(rays, levels[:, None, None]), other).pixels
+    rays = model.rays(nodes, Half.LEFT)
+    field = model.project(_ray_points(rays, levels[:, None, None]), Half.RIGHT).pixels
     seen = np.isfinite(field).all(axis=-1)
     mx = (np.arange(frame.u0, frame.u1) - gu[0]) / grid_px
     my = (np.arange(frame.v0, frame.v1) - gv[0]) / grid_px
@@ -369,9 +367,8 @@ def _levels(model, frame: _Frame, settings: DenseSettings) -> np.ndarray:
     grid = max(settings.grid_px * 8, 16)
     gu = _grid(frame.u0, frame.u1, grid)
     gv = _grid(frame.v0, frame.v1, grid)
-    rays = model.rays(np.stack(np.meshgrid(gu, gv), -1), frame.ref)
-    other = Half.RIGHT if frame.ref is Half.LEFT else Half.LEFT
-    q = model.project(_ray_points(rays, probe[:, None, None]), other).pixels
+    rays = model.rays(np.stack(np.meshgrid(gu, gv), -1), Half.LEFT)
+    q = model.project(_ray_points(rays, probe[:, None, None]), Half.RIGHT).pixels
     step = np.linalg.norm(np.diff(q, axis=0), axis=-1)  # (K-1, gh, gw)
     rate = np.nanmax(step) if np.isfinite(step).any() else 0.0
     count = int(np.ceil(rate * (_PROBE_LEVELS - 1) / settings.coarse_step_px)) + 1
@@ -489,10 +486,7 @@ def _coarse(model, grey, table: _CurveTable, frame: _Frame, levels: np.ndarray,
 
     split = model.config.split
     other = grey.copy()
-    if frame.ref is Half.LEFT:
-        other[:, :split] = np.nan
-    else:
-        other[:, split:] = np.nan
+    other[:, :split] = np.nan
     other = other.astype(np.float32)
     # in float32: the sweep only ranks levels and gives the refinement its start
     reference = grey[frame.v0 : frame.v1, frame.u0 : frame.u1].astype(np.float32)
@@ -779,7 +773,7 @@ def dense_surface(
     # the reference window: the region plus the largest window's margin (inside the half)
     fu0, fv0 = max(0, u0 - r), max(0, v0 - r)
     fu1, fv1 = min(split, u1 + r), min(height, v1 + r)
-    left = _Frame(fu0, fv0, fu1, fv1, Half.LEFT)
+    left = _Frame(fu0, fv0, fu1, fv1)
     levels = _levels(model, left, settings)
     table = _curve_table(model, left, levels, settings.grid_px)
     rungs = [rung for ladder in settings.ladders() for rung in ladder]
