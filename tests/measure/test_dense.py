@@ -166,7 +166,7 @@ def test_curve_table_points_and_samples_match_exact_projections_and_the_spline()
     image = render_plane(model, DEPTH_MM, np.random.default_rng(3)).astype(np.float64)
     width, height = model.config.image_size
     split = model.config.split
-    frame = dense._Frame(*REGION, Half.LEFT)
+    frame = dense._Frame(*REGION)
     levels = dense._levels(model, frame, SETTINGS)
     table = dense._curve_table(model, frame, levels, SETTINGS.grid_px)
     coeffs, origin = spline_coefficients(
