@@ -110,6 +110,14 @@ def window_range(text: str) -> tuple[int, int]:
     return int(lo), int(hi or lo)
 
 
+def command_line(script: str, *options: tuple[str, object]) -> str:
+    """``python bench/SCRIPT`` with each ``(flag, value)`` whose value is not None: the
+    command a section quotes, as its run was given."""
+    parts = [f"python bench/{script}"]
+    parts += [f"{flag} {value}" for flag, value in options if value is not None]
+    return " ".join(parts)
+
+
 def parse_seeds(text: str) -> list[int]:
     """Design seeds from ``1-40``, ``1,5`` or ``1-3,7`` (ranges inclusive)."""
     out: list[int] = []

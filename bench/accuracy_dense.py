@@ -32,6 +32,7 @@ from _common import (  # noqa: E402
     Report,
     Target,
     calibration_dz,
+    command_line,
     design_scenes,
     parse_seeds,
     script_parser,
@@ -279,18 +280,16 @@ def main() -> int:
         match_med, match_inside = _match_summary(fs)
         per_group.append(f"| {name} | {len(fs)} | {cov:.1f} | {med:.3f} | {inside:.1f} | "
                          f"{match_med:.3f} | {match_inside:.1f} |")  # fmt: skip
-    command = f"{Path(sys.executable).name} bench/accuracy_dense.py --session {args.session}"
-    if args.designs is not None:
-        command += f" --designs {args.designs} --design-seeds {args.design_seeds}"
-        command += f" --images {args.images}"
-    if args.window_range is not None:
-        command += f" --window-range {windows[0]},{windows[1]}"
-    if args.prefilter is not None:
-        command += f" --prefilter {args.prefilter:g}"
-    if args.sweep_window is not None:
-        command += f" --sweep-window {sweep}"
-    if args.max_precision is not None:
-        command += f" --max-precision {limit:g}"
+    designs = args.designs is not None
+    command = command_line(
+        "accuracy_dense.py", ("--session", args.session), ("--designs", args.designs),
+        ("--design-seeds", args.design_seeds if designs else None),
+        ("--images", args.images if designs else None),
+        ("--window-range", None if args.window_range is None else f"{windows[0]},{windows[1]}"),
+        ("--prefilter", None if args.prefilter is None else f"{args.prefilter:g}"),
+        ("--sweep-window", None if args.sweep_window is None else sweep),
+        ("--max-precision", None if args.max_precision is None else f"{limit:g}"),
+    )  # fmt: skip
     body = "\n".join([
         "## Dense surfaces on the scene images",
         "",

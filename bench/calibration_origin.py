@@ -30,7 +30,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "src"))
 
-from _common import ACCURACY, Report, calibration_dz, parse_seeds, script_parser  # noqa: E402
+from _common import (  # noqa: E402
+    ACCURACY,
+    Report,
+    calibration_dz,
+    command_line,
+    parse_seeds,
+    script_parser,
+)
 
 
 def _on_axis(faces, n_glass: float) -> tuple[float, float]:
@@ -94,10 +101,12 @@ def main() -> int:
         preset = args.designs / f"design_{seed:03d}" / "preset.json"
         if session.exists() and preset.exists():
             rows.append(row(f"design {seed}", session, load_preset(preset).truth_optics))
-    command = f"python bench/calibration_origin.py --designs {args.designs}"
-    command += f" --design-seeds {args.design_seeds}"
-    if args.session is not None:
-        command += f" --session {args.session}"
+    command = command_line(
+        "calibration_origin.py",
+        ("--designs", args.designs),
+        ("--design-seeds", args.design_seeds),
+        ("--session", args.session),
+    )
     body = "\n".join([
         "## The calibration's frame origin along the axis",
         "",
