@@ -6,7 +6,8 @@ depth of :func:`endomeasure.simulate.truth.true_depth` (the truth optics, not th
 model). Counted pixels: the truth sees the target there and the true point projects into
 the right half. Reports coverage, median |z error| / z, the share of errors inside the
 predicted 2 sigma, the time of a whole frame, the ratio to OpenCV's StereoSGBM alone on
-the same halves, and the peak memory. With ``--designs WORK`` the same on random probe
+the same halves, and the peak memory; and the coverage bound: where the matches at the
+true surface pass the gates. With ``--designs WORK`` the same on random probe
 designs: each design's calibrated session ``WORK/design_NNN.h5`` and scene set
 ``WORK/design_NNN_scene`` (both from ``bench/accuracy_designs.py`` and
 ``bench/operator_designs.py``), the truth from the design's own preset. Writes the
@@ -75,6 +76,7 @@ class Frame(NamedTuple):
     calibration_bias: float  # median (z of the true match under the model - z) / z
     calibration_dz: tuple  # near, far z error of true points; their sigma, mm (calibration_dz)
     by_grey: np.ndarray  # (bins, 2): counted and measured pixels per GREY_BINS bin
+    bound: int  # counted pixels whose match at the true surface passes the gates (gates_at)
 
 
 GREY_BINS = (0.0, 10.0, 30.0, 100.0, np.inf)
@@ -85,7 +87,7 @@ size), DN: where the scene is too dim for any window, coverage falls with the si
 def frame(label, cm, preset, target, image, settings) -> Frame:
     """The dense surface of the whole left half against the truth optics' depth."""
     from endomeasure.conventions import Half
-    from endomeasure.measure.dense import DenseStatus, dense_surface
+    from endomeasure.measure.dense import DenseStatus, dense_surface, gates_at
     from endomeasure.simulate.truth import true_depth
 
     start = time.perf_counter()
@@ -105,14 +107,42 @@ def frame(label, cm, preset, target, image, settings) -> Frame:
     ok = both & (surface.status == DenseStatus.OK)
     err = np.abs(surface.depth[ok] - truth[ok])
     refused = {s.label: int(((surface.status == s) & both).sum()) for s in DenseStatus if s}
-    match_err, match_within, bias = _split_budget(cm, misfit, surface, ok, truth,
-                                                  seen.pixels.reshape(*truth.shape, 2))  # fmt: skip
+    z_model = _model_depth(cm.model, surface.region, both, seen.pixels.reshape(*truth.shape, 2))
+    match_err, match_within, bias = _split_budget(cm, misfit, surface, ok, truth, z_model)
+    gates = gates_at(cm.model, image, _true_surface(cm.model, z_model), None, settings)
     return Frame(label, err / truth[ok], err <= 2 * surface.sigma_depth[ok],
                  surface.sigma_depth[ok] / truth[ok], int(both.sum()), refused,
                  float(np.nanmedian(truth)), seconds, ratio, image.shape, match_err,
                  match_within, bias,
                  calibration_dz(cm.model, cm.param_cov, cm.depth_range_mm, preset.truth_optics),
-                 _by_grey(surface, both, ok, settings.window_range_px[0]))  # fmt: skip
+                 _by_grey(surface, both, ok, settings.window_range_px[0]),
+                 int((gates.passed & both).sum()))  # fmt: skip
+
+
+def _model_depth(model, region, both, true_right) -> np.ndarray:
+    """z (h, w) of each counted pixel's true match (the truth optics' right pixel of its
+    true surface point) triangulated with the calibrated model: where an exact match
+    puts the depth (NaN elsewhere)."""
+    from endomeasure.solvers.triangulate import triangulate
+
+    u0, v0, u1, v1 = region
+    ql = np.stack(np.meshgrid(np.arange(u0, u1, dtype=float),
+                              np.arange(v0, v1, dtype=float)), -1)  # fmt: skip
+    tri = triangulate(model, ql[both], true_right[both])
+    out = np.full(both.shape, np.nan)
+    out[both] = np.where(tri.status == 0, tri.points[:, 2], np.nan)
+    return out
+
+
+def _true_surface(model, z_model: np.ndarray) -> np.ndarray:
+    """The model's inverse depth of the true matches over the whole left half, carried
+    on to the pixels the right half does not see by the nearest known one (a window there
+    needs the surface's continuation, not a hole), for :func:`gates_at`."""
+    from scipy.ndimage import distance_transform_edt
+
+    known = np.isfinite(z_model)
+    _, (iy, ix) = distance_transform_edt(~known, return_indices=True)
+    return 1.0 / z_model[iy, ix]
 
 
 def _by_grey(surface, both, ok, window: int) -> np.ndarray:
@@ -125,29 +155,26 @@ def _by_grey(surface, both, ok, window: int) -> np.ndarray:
                      for k in range(len(GREY_BINS) - 1)])  # fmt: skip
 
 
-def _split_budget(cm, misfit, surface, ok, truth, true_right):
+def _split_budget(cm, misfit, surface, ok, truth, z_model):
     """The matching's and the calibration's shares of the errors, apart.
 
-    The true match (the truth optics' right pixel of each left pixel's true surface
-    point) triangulated with the calibrated model is where a perfect match would put the
-    depth: the measured depth against it is the matching's error, to be held by the
-    match's own sigma (the reported sigma without the calibration's share, which is
-    added in quadrature); it against the truth is the calibration's error."""
+    ``z_model`` (:func:`_model_depth`) is where a perfect match would put the depth: the
+    measured depth against it is the matching's error, to be held by the match's own
+    sigma (the reported sigma without the calibration's share, which is added in
+    quadrature); it against the truth is the calibration's error."""
     from endomeasure.measure.dense import _calibration_sigma
-    from endomeasure.solvers.triangulate import triangulate
 
     u0, v0, u1, v1 = surface.region
     ql = np.stack(np.meshgrid(np.arange(u0, u1, dtype=float),
                               np.arange(v0, v1, dtype=float)), -1)[ok]  # fmt: skip
-    tri = triangulate(cm.model, ql, true_right[ok])
-    z_model = np.where(tri.status == 0, tri.points[:, 2], np.nan)
+    z = z_model[ok]
     sigma = surface.sigma_depth[ok]
     if cm.param_cov is not None or misfit is not None:
         cal = _calibration_sigma(cm.model, cm.param_cov, misfit, ql, surface.right[ok])
         sigma = np.sqrt(np.maximum(sigma**2 - cal**2, 0.0))
-    good = np.isfinite(z_model)
-    diff = np.abs(surface.depth[ok] - z_model)[good]
-    bias = float(np.median((z_model - truth[ok])[good] / truth[ok][good])) if good.any() else np.nan
+    good = np.isfinite(z)
+    diff = np.abs(surface.depth[ok] - z)[good]
+    bias = float(np.median((z - truth[ok])[good] / truth[ok][good])) if good.any() else np.nan
     return diff / truth[ok][good], diff <= 2 * sigma[good], bias
 
 
@@ -157,6 +184,7 @@ def _row(f: Frame) -> str:
 
     return (
         f"| {f.label} | {f.z_mm:.1f} | {100 * f.errors.size / max(f.counted, 1):.1f} | "
+        f"{100 * f.bound / max(f.counted, 1):.1f} | "
         f"{pct(f.errors, np.median, 3)} | {pct(f.within, np.mean, 1)} | "
         f"{pct(f.sigma, np.median, 3)} | {pct(f.match_errors, np.median, 3)} | "
         f"{pct(f.match_within, np.mean, 1)} | {100 * f.calibration_bias:+.3f} | "
@@ -213,6 +241,11 @@ def _summary(frames: list[Frame]) -> tuple[float, float, float]:
     within = np.concatenate([f.within for f in frames])
     coverage = 100 * errors.size / max(sum(f.counted for f in frames), 1)
     return coverage, 100 * float(np.median(errors)), 100 * float(np.mean(within))
+
+
+def _bound(frames: list[Frame]) -> float:
+    """Percentage of the counted pixels the gates pass at the true surface."""
+    return 100 * sum(f.bound for f in frames) / max(sum(f.counted for f in frames), 1)
 
 
 def _match_summary(frames: list[Frame]) -> tuple[float, float]:
@@ -278,7 +311,8 @@ def main() -> int:
     for name, fs in groups:
         cov, med, inside = _summary(fs)
         match_med, match_inside = _match_summary(fs)
-        per_group.append(f"| {name} | {len(fs)} | {cov:.1f} | {med:.3f} | {inside:.1f} | "
+        per_group.append(f"| {name} | {len(fs)} | {cov:.1f} | {_bound(fs):.1f} | {med:.3f} | "
+                         f"{inside:.1f} | "
                          f"{match_med:.3f} | {match_inside:.1f} |")  # fmt: skip
     designs = args.designs is not None
     command = command_line(
@@ -308,18 +342,24 @@ def main() -> int:
         "over the field, triangulated from their true pixels): constant in mm, it is the "
         "model frame's origin set off the truth's along the axis, which no length sees; "
         "the +- is the calibration's own 1-sigma of that z (its covariance, with the "
-        "extensions the fit held but cannot rule out: docs/models.md).",
+        "extensions the fit held but cannot rule out: docs/models.md). *The gates at the "
+        "true surface*: the counted pixels where some window's match at the model's depth "
+        "of the true match passes the precision and score gates (`gates_at`): what an "
+        "exact search could measure with these windows and gates, the texture against the "
+        "noise; coverage cannot exceed it.",
         "",
-        "| images | frames | depth for % | median abs z error % of z | inside 2 sigma % | "
-        "matching alone: median % of z | matching alone: inside its 2 sigma % |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "| images | frames | depth for % | the gates at the true surface pass % | median abs z "
+        "error % of z | inside 2 sigma % | matching alone: median % of z | matching alone: "
+        "inside its 2 sigma % |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
         *per_group,
         "",
-        "| image | z mm | depth for % | median abs z error % of z | inside 2 sigma % | "
+        "| image | z mm | depth for % | the gates at the true surface pass % | median abs z "
+        "error % of z | inside 2 sigma % | "
         "median predicted sigma % of z | matching alone: median % of z | matching alone: "
         "inside its 2 sigma % | calibration's depth bias % of z | calibration's z error "
         "+- its sigma at its nearest / farthest board depth, mm | s | counted pixels refused |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
         *[_row(f) for f in everything],
         "",
         "Coverage by the left half's local mean grey level (over the smallest window), "
@@ -330,7 +370,8 @@ def main() -> int:
         "|---|" + "---:|" * (len(GREY_BINS) - 1),
         *[_grey_row(name, fs) for name, fs in groups],
         "",
-        f"- {checks['coverage'].target}: {coverage:.1f} % ({checks['coverage']})",
+        f"- {checks['coverage'].target}: {coverage:.1f} % ({checks['coverage']}); the gates "
+        f"pass {_bound(everything):.1f} % at the true surface",
         f"- {checks['error'].target}: {median:.3f} % ({checks['error']})",
         f"- {checks['band'].target}: {band:.1f} % ({checks['band']})",
         f"- {checks['time'].target}: {max(vga):.1f} s at most "

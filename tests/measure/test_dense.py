@@ -8,7 +8,7 @@ from tests.conftest import make_raytrace_model
 from tests.measure.dense_data import render_plane
 
 from endomeasure.errors import BadInputError
-from endomeasure.measure.dense import DenseSettings, DenseStatus, dense_surface
+from endomeasure.measure.dense import DenseSettings, DenseStatus, dense_surface, gates_at
 
 DEPTH_MM = 18.0
 REGION = (250, 200, 310, 260)  # where both halves of the test model overlap at 12-30 mm
@@ -41,6 +41,27 @@ def test_dense_depth_of_a_textured_plane_is_right_within_its_sigma(plane):
     assert np.all(np.isnan(surface.depth[~ok]))
     # the points lie on their left rays at that depth
     assert np.allclose(surface.points[ok][:, 2], surface.depth[ok])
+
+
+def _plane_w(model, depth_mm):
+    width, height = model.config.image_size
+    return np.full((height, model.config.split), 1.0 / depth_mm)
+
+
+def test_the_gates_at_the_true_plane_bound_the_search(plane):
+    """At the true surface the gates pass every pixel the search measured (it found
+    nearly that surface) and more than the test's coverage; at a surface 6 mm off the
+    windows no longer correlate."""
+    model, image, surface = plane
+    truth = gates_at(model, image, _plane_w(model, DEPTH_MM), REGION, SETTINGS)
+    assert truth.passed.shape == surface.status.shape
+    ok = surface.status == DenseStatus.OK
+    assert truth.passed.mean() >= max(MIN_VALID, ok.mean() - 0.01)
+    assert np.all(truth.precision_px[truth.passed] <= SETTINGS.max_precision_px)
+    wrong = gates_at(model, image, _plane_w(model, DEPTH_MM + 6.0), REGION, SETTINGS)
+    assert wrong.passed.mean() < 0.05
+    blank = np.full_like(image, 100)
+    assert not gates_at(model, blank, _plane_w(model, DEPTH_MM), REGION, SETTINGS).passed.any()
 
 
 def test_a_blank_frame_is_refused_not_guessed():

@@ -85,6 +85,8 @@ __all__ = [
     "DenseStatus",
     "DenseSurface",
     "dense_surface",
+    "Gates",
+    "gates_at",
     "check_region",
     "accuracy_classes",
 ]
@@ -758,36 +760,13 @@ def dense_surface(
     from endomeasure.solvers.uncertainty import unscented
 
     settings = settings or DenseSettings()
-    image = np.asarray(image)
-    width, height = model.config.image_size
-    if image.ndim != 2 or image.shape != (height, width):
-        raise BadInputError(
-            f"image of shape {image.shape} is not the model's {width}x{height} grey frame"
-        )
-    grey = image.astype(np.float64)
-    split = model.config.split
-    sizes = settings.windows()
-    r = sizes[-1] // 2
-    u0, v0, u1, v1 = check_region(model, region, settings.window_px)
-    noise = (noise_level(grey[:, :split]), noise_level(grey[:, split:]))
-    # the reference window: the region plus the largest window's margin (inside the half)
-    fu0, fv0 = max(0, u0 - r), max(0, v0 - r)
-    fu1, fv1 = min(split, u1 + r), min(height, v1 + r)
-    left = _Frame(fu0, fv0, fu1, fv1)
-    levels = _levels(model, left, settings)
-    table = _curve_table(model, left, levels, settings.grid_px)
-    rungs = [rung for ladder in settings.ladders() for rung in ladder]
-    blurs = {rung.blur for rung in rungs} | {settings.prefilter_px}
-    filtered = {blur: _prefiltered(grey, split, blur) for blur in blurs}
+    grey, (u0, v0, u1, v1), search = _prepare(model, image, region, settings)
+    fu0, fv0 = search.frame.u0, search.frame.v0
     # the sweep only gives the refinement its start: on the prefiltered halves, where
     # faint texture still finds its level
-    swept = filtered[settings.prefilter_px]
-    coarse = _coarse(model, swept, table, left, levels, settings)
-
-    images = {blur: _image(filtered[blur], split, blur, noise, left)
-              for blur in {r.blur for r in rungs}}  # fmt: skip
-    refs = {rung: _ref_stats(images[rung.blur].grey, rung.size) for rung in rungs}
-    match = _adaptive_refinement(table, coarse.w, refs, images, levels, settings)
+    coarse = _coarse(model, search.swept, search.table, search.frame, search.levels, settings)
+    match = _adaptive_refinement(search.table, coarse.w, search.refs, search.images,
+                                 search.levels, settings)  # fmt: skip
     w, sigma_w, q_r, status = match.w, match.sigma_w, match.right, match.status
     region_px = np.stack(np.meshgrid(np.arange(u0, u1, dtype=np.float64),
                                      np.arange(v0, v1, dtype=np.float64)), -1)  # fmt: skip
@@ -829,11 +808,92 @@ def dense_surface(
         score=match.score[inner],
         grey=grey[v0:v1, u0:u1],
         status=status,
-        noise=noise,
-        levels=int(levels.size),
+        noise=search.noise,
+        levels=int(search.levels.size),
         window=np.where(ok, match.window[inner], 0).astype(np.uint16),
         prefilter=np.where(ok, match.prefilter[inner], 0.0).astype(np.float32),
     )
+
+
+class _Search(NamedTuple):
+    """What every match of one frame shares: the reference frame (the region and the
+    largest window's margin), the sweep's levels, the curve table, the halves as each
+    prefilter leaves them, each rung's reference windows and the noise per half."""
+
+    frame: _Frame
+    levels: np.ndarray
+    table: _CurveTable
+    swept: np.ndarray  # the whole frame as the sweep sees it (prefiltered)
+    images: dict  # blur -> _Image
+    refs: dict  # _Rung -> _RefStats
+    noise: tuple[NoiseLevel, NoiseLevel]
+
+
+def _prepare(model, image, region, settings: DenseSettings):
+    """The frame's grey levels (float), the region checked and clipped, and the
+    :class:`_Search` of the frame."""
+    image = np.asarray(image)
+    width, height = model.config.image_size
+    if image.ndim != 2 or image.shape != (height, width):
+        raise BadInputError(
+            f"image of shape {image.shape} is not the model's {width}x{height} grey frame"
+        )
+    grey = image.astype(np.float64)
+    split = model.config.split
+    r = settings.windows()[-1] // 2
+    u0, v0, u1, v1 = check_region(model, region, settings.window_px)
+    noise = (noise_level(grey[:, :split]), noise_level(grey[:, split:]))
+    frame = _Frame(max(0, u0 - r), max(0, v0 - r), min(split, u1 + r), min(height, v1 + r))
+    levels = _levels(model, frame, settings)
+    table = _curve_table(model, frame, levels, settings.grid_px)
+    rungs = [rung for ladder in settings.ladders() for rung in ladder]
+    blurs = {rung.blur for rung in rungs}
+    filtered = {blur: _prefiltered(grey, split, blur) for blur in blurs | {settings.prefilter_px}}
+    images = {blur: _image(filtered[blur], split, blur, noise, frame) for blur in blurs}
+    refs = {rung: _ref_stats(images[rung.blur].grey, rung.size) for rung in rungs}
+    search = _Search(frame, levels, table, filtered[settings.prefilter_px], images, refs, noise)
+    return grey, (u0, v0, u1, v1), search
+
+
+class Gates(NamedTuple):
+    """What the refinement's gates say of the matches at a given surface, per pixel of
+    the region (h, w): ``passed`` where some rung's match passes the precision and the
+    score gates, ``precision_px`` the best precision of those matches (NaN: no window
+    seen whole)."""
+
+    passed: np.ndarray
+    precision_px: np.ndarray
+
+
+def gates_at(
+    model: CameraModel,
+    image: np.ndarray,
+    inverse_depth: np.ndarray,
+    region: tuple[int, int, int, int] | None = None,
+    settings: DenseSettings | None = None,
+) -> Gates:
+    """The gates on every rung's match at a given surface instead of a searched one.
+
+    ``inverse_depth`` (H, split): ``1 / z`` in the model frame for every left-half pixel
+    (NaN where the surface is unknown: windows reaching there are not seen whole). Given
+    the model's depth of the true matches, ``passed`` is where an exact search would find
+    a depth with these windows and gates: the coverage the texture allows against the
+    noise, a bound no start or search can beat (``bench/accuracy_dense.py``).
+    """
+    settings = settings or DenseSettings()
+    _, (u0, v0, u1, v1), search = _prepare(model, image, region, settings)
+    f = search.frame
+    w = np.asarray(inverse_depth, dtype=np.float64)[f.v0 : f.v1, f.u0 : f.u1]
+    passed = np.zeros(w.shape, dtype=bool)
+    best = np.full(w.shape, np.inf)
+    for rung, ref in search.refs.items():
+        _, score, precision, _ = _match_at(search.table, w, ref, search.images[rung.blur],
+                                           rung.size)  # fmt: skip
+        with np.errstate(invalid="ignore"):
+            passed |= (precision <= settings.max_precision_px) & (score >= MIN_SCORE)
+            best = np.where(np.isfinite(score) & (precision < best), precision, best)
+    inner = (slice(v0 - f.v0, v1 - f.v0), slice(u0 - f.u0, u1 - f.u0))
+    return Gates(passed[inner], np.where(np.isfinite(best), best, np.nan)[inner])
 
 
 _START_SPAN = 4
