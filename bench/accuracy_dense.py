@@ -84,11 +84,34 @@ GREY_BINS = (0.0, 10.0, 30.0, 100.0, np.inf)
 size), DN: where the scene is too dim for any window, coverage falls with the signal."""
 
 
+class Truth(NamedTuple):
+    """A frame's truth over the whole left half (h, w): the true depth (truth optics),
+    the counted pixels (the right half sees their true point) and the calibrated model's
+    depth of their true match (:func:`_model_depth`)."""
+
+    depth: np.ndarray
+    both: np.ndarray
+    z_model: np.ndarray
+
+
+def _truth(model, preset, target) -> Truth:
+    from endomeasure.conventions import Half
+    from endomeasure.simulate.truth import true_depth
+
+    split, height = model.config.split, model.config.image_size[1]
+    truth = true_depth(preset, target).astype(np.float64)[:, :split]
+    uu, vv = np.meshgrid(np.arange(split, dtype=float), np.arange(height, dtype=float))
+    rays = preset.truth_optics.rays(np.stack([uu, vv], -1).reshape(-1, 2), Half.LEFT)
+    t = (truth.reshape(-1) - rays.origins[:, 2]) / rays.directions[:, 2]
+    seen = preset.truth_optics.project(rays.origins + t[:, None] * rays.directions, Half.RIGHT)
+    both = np.isfinite(truth) & (seen.status == 0).reshape(truth.shape)
+    right = seen.pixels.reshape(*truth.shape, 2)
+    return Truth(truth, both, _model_depth(model, (0, 0, split, height), both, right))
+
+
 def frame(label, cm, preset, target, image, settings) -> Frame:
     """The dense surface of the whole left half against the truth optics' depth."""
-    from endomeasure.conventions import Half
     from endomeasure.measure.dense import DenseStatus, dense_surface, gates_at
-    from endomeasure.simulate.truth import true_depth
 
     start = time.perf_counter()
     misfit = None if cm.misfit is None else cm.misfit.covariance(np.zeros((1, 2)))
@@ -97,17 +120,10 @@ def frame(label, cm, preset, target, image, settings) -> Frame:
     )  # fmt: skip  (as `endomeasure surface`)
     seconds = time.perf_counter() - start
     ratio = seconds / _sgbm_seconds(image, cm.model.config.split)
-    u0, v0, u1, v1 = surface.region
-    truth = true_depth(preset, target).astype(np.float64)[v0:v1, u0:u1]
-    uu, vv = np.meshgrid(np.arange(u0, u1, dtype=float), np.arange(v0, v1, dtype=float))
-    rays = preset.truth_optics.rays(np.stack([uu, vv], -1).reshape(-1, 2), Half.LEFT)
-    t = (truth.reshape(-1) - rays.origins[:, 2]) / rays.directions[:, 2]
-    seen = preset.truth_optics.project(rays.origins + t[:, None] * rays.directions, Half.RIGHT)
-    both = np.isfinite(truth) & (seen.status == 0).reshape(truth.shape)
+    truth, both, z_model = _truth(cm.model, preset, target)
     ok = both & (surface.status == DenseStatus.OK)
     err = np.abs(surface.depth[ok] - truth[ok])
     refused = {s.label: int(((surface.status == s) & both).sum()) for s in DenseStatus if s}
-    z_model = _model_depth(cm.model, surface.region, both, seen.pixels.reshape(*truth.shape, 2))
     match_err, match_within, bias = _split_budget(cm, misfit, surface, ok, truth, z_model)
     gates = gates_at(cm.model, image, _true_surface(cm.model, z_model), None, settings)
     return Frame(label, err / truth[ok], err <= 2 * surface.sigma_depth[ok],
@@ -117,6 +133,27 @@ def frame(label, cm, preset, target, image, settings) -> Frame:
                  calibration_dz(cm.model, cm.param_cov, cm.depth_range_mm, preset.truth_optics),
                  _by_grey(surface, both, ok, settings.window_range_px[0]),
                  int((gates.passed & both).sum()))  # fmt: skip
+
+
+class Bound(NamedTuple):
+    """One frame's bound (``--bound-only``): the counted pixels, those the gates pass at
+    the true surface, and the predicted sigma / z of the matches there (passed pixels)."""
+
+    label: str
+    counted: int
+    passed: int
+    sigma: np.ndarray
+
+
+def bound_frame(label, cm, preset, target, image, settings) -> Bound:
+    """The gates on the matches at the true surface alone (no search)."""
+    from endomeasure.measure.dense import gates_at
+
+    _, both, z_model = _truth(cm.model, preset, target)
+    gates = gates_at(cm.model, image, _true_surface(cm.model, z_model), None, settings)
+    passed = gates.passed & both
+    # sigma_w / w = sigma_z / z to first order
+    return Bound(label, int(both.sum()), int(passed.sum()), (gates.sigma_w * z_model)[passed])
 
 
 def _model_depth(model, region, both, true_right) -> np.ndarray:
@@ -210,7 +247,7 @@ def _grey_row(name: str, frames: list[Frame]) -> str:
     return f"| {name} | " + " | ".join(cells) + " |"
 
 
-def default_frames(session: Path, settings_for) -> list[Frame]:
+def default_frames(session: Path, settings_for, measure=frame) -> list:
     from endomeasure.io.session import open_session
     from endomeasure.pipeline import calibrated_model
     from endomeasure.simulate.preset import load_preset
@@ -222,18 +259,49 @@ def default_frames(session: Path, settings_for) -> list[Frame]:
         cm = calibrated_model(reader, "raytrace", session)
         images = {n: reader.image(n) for n in sorted(shots) if n in reader.image_names()}
     settings = settings_for(cm)
-    return [frame(n, cm, preset, shots[n].target, im, settings) for n, im in images.items()]
+    return [measure(n, cm, preset, shots[n].target, im, settings) for n, im in images.items()]
 
 
-def design_frames(work: Path, seed: int, images: int, settings_for) -> list[Frame]:
-    """The first ``images`` scene images of one random design (none: no usable
-    calibration or no scene set)."""
+def design_frames(work: Path, seed: int, images: int, settings_for, measure=frame) -> list:
+    """``measure`` (:func:`frame` or :func:`bound_frame`) of the first ``images`` scene
+    images of one random design (none: no usable calibration or no scene set)."""
     design = design_scenes(work, seed, images)
     if design is None:
         return []
     settings = settings_for(design.cm)
-    return [frame(f"design {seed} / {shot.name}", design.cm, design.preset, shot.target,
+    return [measure(f"design {seed} / {shot.name}", design.cm, design.preset, shot.target,
                   design.images[shot.name], settings) for shot in design.shots]  # fmt: skip
+
+
+def _expected_median(sigma: np.ndarray) -> float:
+    """Median |error| (percent) of errors drawn from each pixel's own Gaussian (seeded):
+    what an exact search's depths would show if the predicted sigmas hold."""
+    draws = np.random.default_rng(0).standard_normal(sigma.size)
+    return 100 * float(np.median(np.abs(sigma * draws))) if sigma.size else np.nan
+
+
+def _bound_table(frames: list[Bound], design: list[Bound], windows, prefilter, limit) -> str:
+    """``--bound-only``'s table: per frame and group, the gates at the true surface."""
+
+    def row(name, bounds):
+        counted = max(sum(b.counted for b in bounds), 1)
+        sigma = np.concatenate([b.sigma for b in bounds])
+        return (f"| {name} | {100 * sum(b.passed for b in bounds) / counted:.1f} | "
+                f"{_expected_median(sigma):.3f} |")  # fmt: skip
+
+    groups = [("default preset", frames)] + ([("random designs", design)] if design else [])
+    return "\n".join([
+        f"The gates at the true surface: windows {windows[0]}-{windows[1]} px, prefiltered "
+        f"ladder {prefilter:g} px, precision limit {limit:g} px. Expected median: the "
+        "matching's median |z error| / z if every passed pixel were matched exactly up to "
+        "its predicted sigma (no calibration error).",
+        "",
+        "| frames | the gates pass % of the counted pixels | expected median % of z |",
+        "|---|---:|---:|",
+        *[row(b.label, [b]) for b in frames + design],
+        *[row(f"**{name}**", bounds) for name, bounds in groups],
+        row("**all**", frames + design),
+    ])  # fmt: skip
 
 
 def _summary(frames: list[Frame]) -> tuple[float, float, float]:
@@ -272,6 +340,9 @@ def main() -> int:
                         help="the plane sweep's window, px (default: surface's)")  # fmt: skip
     parser.add_argument("--max-precision", type=float, default=None,
                         help="worst accepted match precision, px (default: surface's)")  # fmt: skip
+    parser.add_argument("--bound-only", action="store_true",
+                        help="only the gates at the true surface (no search; prints, "
+                             "writes nothing)")  # fmt: skip
     args = parser.parse_args()
     from endomeasure import defaults
     from endomeasure.measure.dense import DenseSettings
@@ -289,12 +360,16 @@ def main() -> int:
                              prefilter_px=prefilter, window_px=sweep,
                              max_precision_px=limit)  # fmt: skip
 
-    frames = default_frames(args.session, settings_for)
+    measure = bound_frame if args.bound_only else frame
+    frames = default_frames(args.session, settings_for, measure)
     design = []
     if args.designs is not None:
         for seed in parse_seeds(args.design_seeds):
-            design += design_frames(args.designs, seed, args.images, settings_for)
+            design += design_frames(args.designs, seed, args.images, settings_for, measure)
             print(f"design {seed}: {len(design)} frames", file=sys.stderr, flush=True)
+    if args.bound_only:
+        print(_bound_table(frames, design, windows, prefilter, limit))
+        return 0
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     report = Report("accuracy_dense", args, ACCURACY)
     everything = frames + design

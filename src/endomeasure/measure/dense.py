@@ -859,10 +859,11 @@ class Gates(NamedTuple):
     """What the refinement's gates say of the matches at a given surface, per pixel of
     the region (h, w): ``passed`` where some rung's match passes the precision and the
     score gates, ``precision_px`` the best precision of those matches (NaN: no window
-    seen whole)."""
+    seen whole) and ``sigma_w`` its sigma of the inverse depth (1/mm)."""
 
     passed: np.ndarray
     precision_px: np.ndarray
+    sigma_w: np.ndarray
 
 
 def gates_at(
@@ -885,15 +886,17 @@ def gates_at(
     f = search.frame
     w = np.asarray(inverse_depth, dtype=np.float64)[f.v0 : f.v1, f.u0 : f.u1]
     passed = np.zeros(w.shape, dtype=bool)
-    best = np.full(w.shape, np.inf)
+    best, best_sigma = np.full(w.shape, np.inf), np.full(w.shape, np.nan)
     for rung, ref in search.refs.items():
-        _, score, precision, _ = _match_at(search.table, w, ref, search.images[rung.blur],
-                                           rung.size)  # fmt: skip
+        _, score, precision, sigma_w = _match_at(search.table, w, ref,
+                                                 search.images[rung.blur], rung.size)  # fmt: skip
         with np.errstate(invalid="ignore"):
             passed |= (precision <= settings.max_precision_px) & (score >= MIN_SCORE)
-            best = np.where(np.isfinite(score) & (precision < best), precision, best)
+            better = np.isfinite(score) & (precision < best)
+        best, best_sigma = np.where(better, precision, best), np.where(better, sigma_w, best_sigma)
     inner = (slice(v0 - f.v0, v1 - f.v0), slice(u0 - f.u0, u1 - f.u0))
-    return Gates(passed[inner], np.where(np.isfinite(best), best, np.nan)[inner])
+    return Gates(passed[inner], np.where(np.isfinite(best), best, np.nan)[inner],
+                 best_sigma[inner])  # fmt: skip
 
 
 _START_SPAN = 4
