@@ -143,6 +143,7 @@ class Bound(NamedTuple):
     counted: int
     passed: int
     sigma: np.ndarray
+    unseen: int  # counted pixels no window of the ladder sees whole in the other half
 
 
 def bound_frame(label, cm, preset, target, image, settings) -> Bound:
@@ -153,7 +154,9 @@ def bound_frame(label, cm, preset, target, image, settings) -> Bound:
     gates = gates_at(cm.model, image, _true_surface(cm.model, z_model), None, settings)
     passed = gates.passed & both
     # sigma_w / w = sigma_z / z to first order
-    return Bound(label, int(both.sum()), int(passed.sum()), (gates.sigma_w * z_model)[passed])
+    unseen = int((both & ~np.isfinite(gates.precision_px)).sum())
+    return Bound(label, int(both.sum()), int(passed.sum()), (gates.sigma_w * z_model)[passed],
+                 unseen)  # fmt: skip
 
 
 def _model_depth(model, region, both, true_right) -> np.ndarray:
@@ -287,6 +290,7 @@ def _bound_table(frames: list[Bound], design: list[Bound], windows, prefilter, l
         counted = max(sum(b.counted for b in bounds), 1)
         sigma = np.concatenate([b.sigma for b in bounds])
         return (f"| {name} | {100 * sum(b.passed for b in bounds) / counted:.1f} | "
+                f"{100 * sum(b.unseen for b in bounds) / counted:.1f} | "
                 f"{_expected_median(sigma):.3f} |")  # fmt: skip
 
     groups = [("default preset", frames)] + ([("random designs", design)] if design else [])
@@ -294,10 +298,12 @@ def _bound_table(frames: list[Bound], design: list[Bound], windows, prefilter, l
         f"The gates at the true surface: windows {windows[0]}-{windows[1]} px, prefiltered "
         f"ladder {prefilter:g} px, precision limit {limit:g} px. Expected median: the "
         "matching's median |z error| / z if every passed pixel were matched exactly up to "
-        "its predicted sigma (no calibration error).",
+        "its predicted sigma (no calibration error). No window seen whole: the counted "
+        "pixels whose every window leaves the other half (the overlap's edges).",
         "",
-        "| frames | the gates pass % of the counted pixels | expected median % of z |",
-        "|---|---:|---:|",
+        "| frames | the gates pass % of the counted pixels | no window seen whole % | "
+        "expected median % of z |",
+        "|---|---:|---:|---:|",
         *[row(b.label, [b]) for b in frames + design],
         *[row(f"**{name}**", bounds) for name, bounds in groups],
         row("**all**", frames + design),

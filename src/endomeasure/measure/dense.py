@@ -129,7 +129,14 @@ class DenseSettings:
     fine_steps : int
         Sub-levels per coarse level in the refinement.
     fine_reach : float
-        The refinement searches this many coarse levels either side of its start.
+        The refinement's peak is the highest within this many coarse levels either side
+        of its start, if it lies inside that stretch.
+    wide_reach : float
+        Else the highest within this many levels (``fine_steps`` per level out to here).
+        Over most of the frame the start is within a level of the surface, and a peak
+        near it is kept; at the fringe of the measured part the start is carried on from
+        farther inside and may be off by more than ``fine_reach`` (the coverage this
+        adds: ``docs/surface.md``, "Reach").
     passes : int
         Refinement passes: each starts from the previous one's depths (the first from
         the sweep's), smoothed on each window's scale (:func:`_smooth_base`).
@@ -165,6 +172,7 @@ class DenseSettings:
     coarse_step_px: float = 1.0
     fine_steps: int = 4
     fine_reach: float = 1.5
+    wide_reach: float = 3.0
     passes: int = 3
     grid_px: int = 4
     smooth_px: int = 5
@@ -632,12 +640,14 @@ def _refine(table: _CurveTable, bases: dict, refs: dict, images: dict,
     ``images[rung.blur]``.
 
     The other half is sampled along every pixel's curve at sub-levels within
-    ``fine_reach`` coarse levels of the start; the ZNCC peak and a parabola give the
+    ``wide_reach`` coarse levels of the start; the ZNCC peak (within ``fine_reach`` if it
+    lies inside that stretch, else within ``wide_reach``) and a parabola give the
     offset, which is added to the start at the pixel (the window was warped by the
     start, so its offset corrects the start where the window is centred). The match at
     that depth is then evaluated (:func:`_match_at`) for its score, precision and sigma.
     """
-    n_fine = int(np.ceil(settings.fine_reach * settings.fine_steps))
+    n_near = int(np.ceil(settings.fine_reach * settings.fine_steps))
+    n_fine = max(n_near, int(np.ceil(settings.wide_reach * settings.fine_steps)))
     offsets = np.arange(-n_fine, n_fine + 1) / settings.fine_steps * table.dw
     out = {}
     for rung, ref in refs.items():
@@ -645,7 +655,10 @@ def _refine(table: _CurveTable, bases: dict, refs: dict, images: dict,
         stretch = offsets * (settings.prefilter_stride if rung.blur > 0 else 1.0)
         fine = np.stack([_zncc(ref, image.right.values_along(table, base + dj), size)[0]
                          for dj in stretch])  # fmt: skip
-        best = np.argmax(np.nan_to_num(fine, nan=-2.0), axis=0)
+        key = np.nan_to_num(fine, nan=-2.0)
+        near = n_fine - n_near + np.argmax(key[n_fine - n_near : n_fine + n_near + 1], axis=0)
+        inside = (near > n_fine - n_near) & (near < n_fine + n_near)
+        best = np.where(inside, near, np.argmax(key, axis=0))
         rows, cols = np.indices(best.shape)
         y0 = fine[best, rows, cols]
         y_minus = fine[np.maximum(best - 1, 0), rows, cols]
@@ -657,6 +670,11 @@ def _refine(table: _CurveTable, bases: dict, refs: dict, images: dict,
         # stretch may lie beyond it
         unseen = ~(np.isfinite(y0) & np.isfinite(y_minus) & np.isfinite(y_plus))
         end = (best == 0) | (best == offsets.size - 1)
+        # the match is judged on the windows warped by every pixel's own depth: a pixel
+        # without a peak inside the stretch keeps its start there (the smooth surface
+        # its neighbours' depths gave), not a sample at the stretch's end, which would
+        # bend its neighbours' windows
+        w = np.where(unseen | end, base, w)
         q_r, score, precision, sigma_w = _match_at(table, w, ref, image, size)
         status = np.full(w.shape, DenseStatus.OK, dtype=np.uint8)
         status[unseen | ~np.isfinite(score)] = DenseStatus.NOT_SEEN
