@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from tests.conftest import make_raytrace_model
@@ -304,3 +306,37 @@ def test_a_chosen_window_that_departs_from_the_smaller_ones_carries_the_departur
     assert chosen.tolist() == [1, 1]
     picked = _picked(candidates, chosen)
     assert np.allclose(picked.sigma_w, [np.sqrt(0.1**2 + 1.5**2 - 1.0), 0.1])
+
+
+@pytest.mark.parametrize("levels_off", [1.0, 2.25])
+def test_the_refinement_finds_the_surface_from_a_start_beyond_the_near_stretch(plane, levels_off):
+    """A start off by more than ``fine_reach`` but within ``wide_reach`` sweep levels
+    still finds the plane (the fringe of the measured part, where the start is carried on
+    from farther inside); searched only within ``fine_reach`` it ends at the stretch's end
+    and keeps its start there, refused. The smallest window, where it is seen whole: the
+    windows reach into the margin the other half does not see, which keeps the start,
+    uniformly off in this test (in the search the start is smooth across it)."""
+    from endomeasure.measure.dense import _prepare, _refine
+
+    model, image, _ = plane
+    _, (u0, v0, u1, v1), search = _prepare(model, image, REGION, SETTINGS)
+    f = search.frame
+    inner = (slice(v0 - f.v0, v1 - f.v0), slice(u0 - f.u0, u1 - f.u0))
+    w_true = 1.0 / DEPTH_MM
+    start = np.full((f.v1 - f.v0, f.u1 - f.u0), w_true + levels_off * search.table.dw)
+    bases = {size: start for size in SETTINGS.windows()}
+
+    def smallest(settings):
+        out = _refine(search.table, bases, search.refs, search.images, settings)
+        return next(c for rung, c in out.items() if rung.blur == 0 and rung.size == 15)
+
+    c = smallest(SETTINGS)
+    status, w, sigma_w = c.status[inner], c.w[inner], c.sigma_w[inner]
+    ok, seen = status == DenseStatus.OK, status != DenseStatus.NOT_SEEN
+    assert ok.sum() >= MIN_VALID * seen.sum()
+    assert np.mean(np.abs(w[ok] - w_true) <= 2 * sigma_w[ok]) >= MIN_INSIDE_2SIGMA
+    if levels_off > SETTINGS.fine_reach:
+        near = smallest(dataclasses.replace(SETTINGS, wide_reach=SETTINGS.fine_reach))
+        end = near.status[inner] == DenseStatus.AT_RANGE_END
+        assert end.sum() >= MIN_VALID * seen.sum()
+        assert np.all(near.w[inner][end] == start[inner][end])
