@@ -319,16 +319,17 @@ def test_the_refinement_finds_the_surface_from_a_start_beyond_the_near_stretch(p
     from endomeasure.measure.dense import _prepare, _refine
 
     model, image, _ = plane
-    _, (u0, v0, u1, v1), search = _prepare(model, image, REGION, SETTINGS)
+    _, region, search = _prepare(model, image, REGION, SETTINGS)
     f = search.frame
-    inner = (slice(v0 - f.v0, v1 - f.v0), slice(u0 - f.u0, u1 - f.u0))
+    inner = f.crop(region)
     w_true = 1.0 / DEPTH_MM
     start = np.full((f.v1 - f.v0, f.u1 - f.u0), w_true + levels_off * search.table.dw)
     bases = {size: start for size in SETTINGS.windows()}
+    size = min(SETTINGS.windows())
 
     def smallest(settings):
         out = _refine(search.table, bases, search.refs, search.images, settings)
-        return next(c for rung, c in out.items() if rung.blur == 0 and rung.size == 15)
+        return next(c for rung, c in out.items() if rung.blur == 0 and rung.size == size)
 
     c = smallest(SETTINGS)
     status, w, sigma_w = c.status[inner], c.w[inner], c.sigma_w[inner]

@@ -302,6 +302,11 @@ class _Frame(NamedTuple):
     u1: int
     v1: int
 
+    def crop(self, region: tuple[int, int, int, int]) -> tuple[slice, slice]:
+        """The rows and columns of the frame's arrays that hold ``region`` (inside it)."""
+        u0, v0, u1, v1 = region
+        return slice(v0 - self.v0, v1 - self.v0), slice(u0 - self.u0, u1 - self.u0)
+
 
 class _CurveTable(NamedTuple):
     """Exact other-half pixels of a grid of reference pixels on the sweep's planes.
@@ -779,7 +784,6 @@ def dense_surface(
 
     settings = settings or DenseSettings()
     grey, (u0, v0, u1, v1), search = _prepare(model, image, region, settings)
-    fu0, fv0 = search.frame.u0, search.frame.v0
     # the sweep only gives the refinement its start: on the prefiltered halves, where
     # faint texture still finds its level
     coarse = _coarse(model, search.swept, search.table, search.frame, search.levels, settings)
@@ -791,7 +795,7 @@ def dense_surface(
     rays = model.rays(region_px, Half.LEFT)
 
     # ----- crop to the region, sigma of z by the unscented transform of w
-    inner = (slice(v0 - fv0, v1 - fv0), slice(u0 - fu0, u1 - fu0))
+    inner = search.frame.crop((u0, v0, u1, v1))
     status = status[inner]
     ok = status == DenseStatus.OK
     w_in, s_in = w[inner], sigma_w[inner]
@@ -900,7 +904,7 @@ def gates_at(
     noise, a bound no start or search can beat (``bench/accuracy_dense.py``).
     """
     settings = settings or DenseSettings()
-    _, (u0, v0, u1, v1), search = _prepare(model, image, region, settings)
+    _, region, search = _prepare(model, image, region, settings)
     f = search.frame
     w = np.asarray(inverse_depth, dtype=np.float64)[f.v0 : f.v1, f.u0 : f.u1]
     passed = np.zeros(w.shape, dtype=bool)
@@ -912,7 +916,7 @@ def gates_at(
             passed |= (precision <= settings.max_precision_px) & (score >= MIN_SCORE)
             better = np.isfinite(score) & (precision < best)
         best, best_sigma = np.where(better, precision, best), np.where(better, sigma_w, best_sigma)
-    inner = (slice(v0 - f.v0, v1 - f.v0), slice(u0 - f.u0, u1 - f.u0))
+    inner = f.crop(region)
     return Gates(passed[inner], np.where(np.isfinite(best), best, np.nan)[inner],
                  best_sigma[inner])  # fmt: skip
 
