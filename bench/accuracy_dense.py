@@ -86,27 +86,38 @@ size), DN: where the scene is too dim for any window, coverage falls with the si
 
 class Truth(NamedTuple):
     """A frame's truth over the whole left half (h, w): the true depth (truth optics),
-    the counted pixels (the right half sees their true point) and the calibrated model's
-    depth of their true match (:func:`_model_depth`)."""
+    the counted pixels (the right half sees their true point), the calibrated model's
+    depth of their true match (:func:`_model_depth`) and that match, the truth optics'
+    right pixel (h, w, 2)."""
 
     depth: np.ndarray
     both: np.ndarray
     z_model: np.ndarray
+    right: np.ndarray
+
+
+def true_right(preset, depth: np.ndarray, scale: float = 1.0):
+    """The truth optics' right-half projection (pixels (h, w, 2), seen (h, w)) of every
+    left pixel's true point at ``depth`` (h, w), moved to ``scale`` times its distance
+    along the left ray."""
+    from endomeasure.conventions import Half
+
+    height, width = depth.shape
+    uu, vv = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
+    rays = preset.truth_optics.rays(np.stack([uu, vv], -1).reshape(-1, 2), Half.LEFT)
+    t = scale * (depth.reshape(-1) - rays.origins[:, 2]) / rays.directions[:, 2]
+    seen = preset.truth_optics.project(rays.origins + t[:, None] * rays.directions, Half.RIGHT)
+    return seen.pixels.reshape(height, width, 2), (seen.status == 0).reshape(height, width)
 
 
 def _truth(model, preset, target) -> Truth:
-    from endomeasure.conventions import Half
     from endomeasure.simulate.truth import true_depth
 
     split, height = model.config.split, model.config.image_size[1]
     truth = true_depth(preset, target).astype(np.float64)[:, :split]
-    uu, vv = np.meshgrid(np.arange(split, dtype=float), np.arange(height, dtype=float))
-    rays = preset.truth_optics.rays(np.stack([uu, vv], -1).reshape(-1, 2), Half.LEFT)
-    t = (truth.reshape(-1) - rays.origins[:, 2]) / rays.directions[:, 2]
-    seen = preset.truth_optics.project(rays.origins + t[:, None] * rays.directions, Half.RIGHT)
-    both = np.isfinite(truth) & (seen.status == 0).reshape(truth.shape)
-    right = seen.pixels.reshape(*truth.shape, 2)
-    return Truth(truth, both, _model_depth(model, (0, 0, split, height), both, right))
+    right, seen = true_right(preset, truth)
+    both = np.isfinite(truth) & seen
+    return Truth(truth, both, _model_depth(model, (0, 0, split, height), both, right), right)
 
 
 def frame(label, cm, preset, target, image, settings) -> Frame:
@@ -120,7 +131,7 @@ def frame(label, cm, preset, target, image, settings) -> Frame:
     )  # fmt: skip  (as `endomeasure surface`)
     seconds = time.perf_counter() - start
     ratio = seconds / _sgbm_seconds(image, cm.model.config.split)
-    truth, both, z_model = _truth(cm.model, preset, target)
+    truth, both, z_model, _ = _truth(cm.model, preset, target)
     ok = both & (surface.status == DenseStatus.OK)
     err = np.abs(surface.depth[ok] - truth[ok])
     refused = {s.label: int(((surface.status == s) & both).sum()) for s in DenseStatus if s}
@@ -150,7 +161,7 @@ def bound_frame(label, cm, preset, target, image, settings) -> Bound:
     """The gates on the matches at the true surface alone (no search)."""
     from endomeasure.measure.dense import gates_at
 
-    _, both, z_model = _truth(cm.model, preset, target)
+    _, both, z_model, _ = _truth(cm.model, preset, target)
     gates = gates_at(cm.model, image, _true_surface(cm.model, z_model), None, settings)
     passed = gates.passed & both
     # sigma_w / w = sigma_z / z to first order
