@@ -81,6 +81,20 @@ def test_a_region_outside_the_left_half_is_refused(plane, region):
         dense_surface(model, image, region, SETTINGS)
 
 
+def test_a_region_the_right_half_does_not_see_is_refused_as_input(plane):
+    """Outside the overlap (the test model's right half sees none of the left half's
+    outer edge at 12-30 mm) nothing can be measured whatever the image: bad input, not a
+    failed measurement; the same region moved into the overlap is searched."""
+    model, image, _ = plane
+    outside = (0, 240, 40, 280)
+    with pytest.raises(BadInputError, match="outside the overlap"):
+        dense_surface(model, image, outside, SETTINGS)
+    with pytest.raises(BadInputError, match="outside the overlap"):
+        gates_at(model, image, _plane_w(model, DEPTH_MM), outside, SETTINGS)
+    inside = (outside[0] + 250, *outside[1:2], outside[2] + 250, *outside[3:])
+    assert dense_surface(model, image, inside, SETTINGS).status.shape == (40, 40)
+
+
 def test_an_illumination_ramp_that_differs_between_the_halves_does_not_shift_the_depth():
     """Vignetting and the light's fall-off multiply each half's view of a point by a
     different smooth field; the windows' trend removal keeps the depth unbiased."""

@@ -65,9 +65,16 @@ def test_the_depth_of_a_textured_plane_is_stored_with_its_point_cloud(session, t
         (["--image", "plane", "--region", "400,10,500,100"], 2, "region"),  # right half
         (["--image", "plane", "--region", "1,2,3"], 2, "U0,V0,U1,V1"),
         (["--image", "nope"], 2, "nope"),
+        (["--image", "plane", "--region", "0,240,40,280"], 2, "outside the overlap"),
         (["--image", "blank", "--region", REGION], 1, "could be measured"),
     ],
-    ids=["outside-the-left-half", "bad-region", "unknown-image", "untextured"],
+    ids=[
+        "outside-the-left-half",
+        "bad-region",
+        "unknown-image",
+        "outside-the-overlap",
+        "untextured",
+    ],
 )
 def test_bad_or_unmeasurable_regions_are_one_line_and_store_nothing(
     session, tmp_path, args, code, message

@@ -343,6 +343,16 @@ def _curve_table(model, frame: _Frame, levels: np.ndarray, grid_px: int) -> _Cur
                        float(levels[0]), float(levels[1] - levels[0]))  # fmt: skip
 
 
+def _sees_region(table: _CurveTable, frame: _Frame, region) -> bool:
+    """Whether the other half sees some pixel of ``region`` at some level of the sweep
+    (its nearest grid node, from the model alone): outside the overlap nothing can be
+    measured whatever the image holds."""
+    rows, cols = frame.crop(region)
+    iy = np.rint(table.my[rows]).astype(np.intp)
+    ix = np.rint(table.mx[cols]).astype(np.intp)
+    return bool(table.seen.any(axis=0)[np.ix_(iy, ix)].any())
+
+
 def _continued(field: np.ndarray, depth: int = 2) -> np.ndarray:
     """``field`` (K, gh, gw, 2) with up to ``depth`` missing nodes next to the seen ones
     filled by quadratic extrapolation along rows, then columns: the map is smooth, and the
@@ -868,6 +878,13 @@ def _prepare(model, image, region, settings: DenseSettings):
     frame = _Frame(max(0, u0 - r), max(0, v0 - r), min(split, u1 + r), min(height, v1 + r))
     levels = _levels(model, frame, settings)
     table = _curve_table(model, frame, levels, settings.grid_px)
+    if not _sees_region(table, frame, (u0, v0, u1, v1)):
+        near, far = settings.depth_range_mm
+        raise BadInputError(
+            f"region {u0},{v0},{u1},{v1} lies outside the overlap: the right half sees "
+            f"none of it at {near:.1f}-{far:.1f} mm",
+            hint="choose a region of the left half that the right half sees too",
+        )
     rungs = [rung for ladder in settings.ladders() for rung in ladder]
     blurs = {rung.blur for rung in rungs}
     filtered = {blur: _prefiltered(grey, split, blur) for blur in blurs | {settings.prefilter_px}}
