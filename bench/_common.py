@@ -104,6 +104,15 @@ class Check:
         return f"{verdict}: {self.target}; this run {self.value:.4g}{self.target.unit}"
 
 
+def scene_options(parser: argparse.ArgumentParser) -> None:
+    """The options of the scripts that measure scene images: the default preset's demo
+    session and random designs' scene sets (``design_scenes``)."""
+    parser.add_argument("--session", type=Path, default=ROOT / "out" / "demo" / "demo.h5")
+    parser.add_argument("--designs", type=Path, default=None, help="random designs' WORK folder")
+    parser.add_argument("--design-seeds", default="1-12", help="e.g. 1-12 or 1,5")
+    parser.add_argument("--images", type=int, default=1, help="scene images per design")
+
+
 def window_range(text: str) -> tuple[int, int]:
     """The dense refinement's window sides ``LO,HI`` (px) of a ``--window-range`` option."""
     lo, _, hi = text.partition(",")

@@ -36,6 +36,7 @@ from _common import (  # noqa: E402
     command_line,
     design_scenes,
     parse_seeds,
+    scene_options,
     script_parser,
     window_range,
 )
@@ -287,6 +288,18 @@ def design_frames(work: Path, seed: int, images: int, settings_for, measure=fram
                   design.images[shot.name], settings) for shot in design.shots]  # fmt: skip
 
 
+def scene_frames(args, settings_for, measure) -> tuple[list, list]:
+    """``measure`` of the default preset's scene images and, with ``--designs``, of each
+    design's first ``--images`` scene images (:func:`scene_options`' arguments)."""
+    frames = default_frames(args.session, settings_for, measure)
+    design = []
+    if args.designs is not None:
+        for seed in parse_seeds(args.design_seeds):
+            design += design_frames(args.designs, seed, args.images, settings_for, measure)
+            print(f"design {seed}: {len(design)} frames", file=sys.stderr, flush=True)
+    return frames, design
+
+
 def _expected_median(sigma: np.ndarray) -> float:
     """Median |error| (percent) of errors drawn from each pixel's own Gaussian (seeded):
     what an exact search's depths would show if the predicted sigmas hold."""
@@ -341,10 +354,7 @@ def _match_summary(frames: list[Frame]) -> tuple[float, float]:
 
 def main() -> int:
     parser = script_parser(__doc__)
-    parser.add_argument("--session", type=Path, default=ROOT / "out" / "demo" / "demo.h5")
-    parser.add_argument("--designs", type=Path, default=None, help="random designs' WORK folder")
-    parser.add_argument("--design-seeds", default="1-12", help="e.g. 1-12 or 1,5")
-    parser.add_argument("--images", type=int, default=1, help="scene images per design")
+    scene_options(parser)
     parser.add_argument("--window-range", type=window_range, default=None,
                         help="refinement windows LO,HI px (default: surface's)")  # fmt: skip
     parser.add_argument(
@@ -377,13 +387,7 @@ def main() -> int:
                              prefilter_px=prefilter, window_px=sweep,
                              max_precision_px=limit)  # fmt: skip
 
-    measure = bound_frame if args.bound_only else frame
-    frames = default_frames(args.session, settings_for, measure)
-    design = []
-    if args.designs is not None:
-        for seed in parse_seeds(args.design_seeds):
-            design += design_frames(args.designs, seed, args.images, settings_for, measure)
-            print(f"design {seed}: {len(design)} frames", file=sys.stderr, flush=True)
+    frames, design = scene_frames(args, settings_for, bound_frame if args.bound_only else frame)
     if args.bound_only:
         print(_bound_table(frames, design, windows, prefilter, limit))
         return 0

@@ -48,6 +48,7 @@ from _common import (  # noqa: E402
     Target,
     design_scenes,
     parse_seeds,
+    scene_options,
     script_parser,
     window_range,
 )
@@ -321,14 +322,11 @@ def _design_set(work: Path, seed: int, count: int) -> _SceneSet | None:
 
 def main() -> int:
     parser = script_parser(__doc__, seed=0)
-    parser.add_argument("--session", type=Path, default=ROOT / "out" / "demo" / "demo.h5")
+    scene_options(parser)
     parser.add_argument("--paths", type=int, default=8, help="random paths per scene image")
     parser.add_argument("--pits", type=int, default=3, help="planted pits per scene image")
     parser.add_argument("--window-range", type=window_range, default=None,
                         help="refinement windows LO,HI px (default: profiles')")  # fmt: skip
-    parser.add_argument("--designs", type=Path, default=None, help="random designs' WORK folder")
-    parser.add_argument("--design-seeds", default="1-12", help="e.g. 1-12 or 1,5")
-    parser.add_argument("--images", type=int, default=1, help="scene images per design")
     parser.add_argument("--matte", action="store_true",
                         help="render the pitted part without its specular reflection (a "
                              "control: what the view-dependent highlight costs); implies "

@@ -28,14 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "src"))
 
-from _common import parse_seeds, script_parser  # noqa: E402
-from accuracy_dense import (  # noqa: E402
-    _true_surface,
-    _truth,
-    default_frames,
-    design_frames,
-    true_right,
-)
+from _common import scene_options, script_parser  # noqa: E402
+from accuracy_dense import _true_surface, _truth, scene_frames, true_right  # noqa: E402
 
 DEPTH_STEP = 1e-3
 """Relative step along the left ray that gives the true match's direction of motion."""
@@ -142,10 +136,7 @@ def texture_frame(label, cm, preset, target, image, settings) -> Texture:
 
 def main() -> int:
     parser = script_parser(__doc__)
-    parser.add_argument("--session", type=Path, default=ROOT / "out" / "demo" / "demo.h5")
-    parser.add_argument("--designs", type=Path, default=None, help="random designs' WORK folder")
-    parser.add_argument("--design-seeds", default="1-12", help="e.g. 1-12 or 1,5")
-    parser.add_argument("--images", type=int, default=1, help="scene images per design")
+    scene_options(parser)
     args = parser.parse_args()
     from endomeasure.measure.dense import DenseSettings
     from endomeasure.pipeline import search_depths
@@ -153,10 +144,8 @@ def main() -> int:
     def settings_for(cm):
         return DenseSettings(depth_range_mm=search_depths(cm))
 
-    frames = default_frames(args.session, settings_for, texture_frame)
-    if args.designs is not None:
-        for seed in parse_seeds(args.design_seeds):
-            frames += design_frames(args.designs, seed, args.images, settings_for, texture_frame)
+    default, design = scene_frames(args, settings_for, texture_frame)
+    frames = default + design
     sides = list(frames[0].known) if frames else []
     print("Median shift precision over the counted pixels, px (and the share of them at or "
           "below the precision gate, %): the Cramér-Rao bound for a known texture / with "
